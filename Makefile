@@ -1,0 +1,31 @@
+# recon — the README's commands. Everything runs inside .venv, created by `make install`.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: install test lint demo bench clean
+
+install: $(BIN)/recon
+
+$(BIN)/recon: pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	# torch pinned in the SAME pip call as every other dependency, so nothing pulls a CUDA build.
+	$(BIN)/pip install -q torch==2.13.0 -e '.[test]'
+	@touch $@
+
+test: install
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile tests
+
+lint: install
+	$(BIN)/ruff check recon tests pipelines
+
+demo: install
+	$(MAKE) -C pipelines SCENE=sample METHOD=ngp all
+
+bench: install
+	$(BIN)/python pipelines/bench.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,2 @@
+"""Fields and encodings: the learnable functions of position (and direction) that the
+volume methods query."""

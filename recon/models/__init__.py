@@ -1,0 +1,1 @@
+"""Scene representations behind one interface (`recon.models.base.Model`)."""

@@ -1,0 +1,119 @@
+"""The contract between the `train` / `render` / `mesh` stages and a scene representation.
+
+The stages never see a representation's internals: they hand it `TrainData` and cameras and
+get images back. Each method module (`nerf`, `ngp`, `plenoxel`, `gaussians`) registers a
+`(Config, Model)` pair with `register`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+from torch import Tensor, nn
+
+from recon.cameras import Cameras
+from recon.cameras.rays import pixel_centers, rays_from_pixels
+
+
+@dataclass
+class SceneInfo:
+    """What every representation may know about the normalized scene.
+
+    aabb: (2, 3) box [min, max] that holds the scene in the normalized frame (usually [-1, 1]^3).
+    unbounded: the capture is a real, unbounded scene: use a contraction outside the box.
+    background: (3,) colour composited behind the scene (training images were composited on it).
+    near, far: ray bounds in normalized units.
+    points, point_colors: optional (P, 3) SfM points (normalized frame) and colours in [0, 1].
+    """
+
+    aabb: Tensor
+    unbounded: bool
+    background: Tensor
+    near: float
+    far: float
+    points: Tensor | None = None
+    point_colors: Tensor | None = None
+
+
+@dataclass
+class TrainData:
+    """Training images and their cameras, on the training device.
+
+    images: (C, H, W, 3) float32 in [0, 1], already composited on `SceneInfo.background`.
+    cameras: C pinhole cameras of size (W, H).
+    """
+
+    images: Tensor
+    cameras: Cameras
+    _rays: dict = field(default_factory=dict, repr=False)
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    def rays(self) -> dict[str, Tensor]:
+        """Every training pixel as a packed ray table (computed once):
+        origins (N, 3), directions (N, 3) unit, z_per_t (N,), rgb (N, 3), camera (N,) int64."""
+        if not self._rays:
+            C, H, W, _ = self.images.shape
+            uv = pixel_centers(W, H, device=self.images.device)
+            o, d, z = rays_from_pixels(
+                uv[None], self.cameras.K[:, None, None].float(),
+                self.cameras.world_from_cam[:, None, None].float(),
+            )
+            cam = torch.arange(C, device=self.images.device)[:, None, None].expand(C, H, W)
+            self._rays = dict(
+                origins=o.reshape(-1, 3).contiguous(), directions=d.reshape(-1, 3).contiguous(),
+                z_per_t=z.expand(C, H, W).reshape(-1).contiguous(),
+                rgb=self.images.reshape(-1, 3), camera=cam.reshape(-1),
+            )
+        return self._rays
+
+
+class Model(nn.Module):
+    """A trainable scene. Subclasses implement the four methods below.
+
+    `train_step` owns its optimizers, batching and any densification/pruning, so the stage
+    code stays a plain loop; it returns scalars for the log (at least "loss").
+    `render` returns, for ONE camera, "rgb" (H, W, 3), "depth" (H, W) as z-depth along the
+    optical axis in normalized units, and "acc" (H, W) accumulated opacity.
+    """
+
+    def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def render(self, camera: Cameras) -> dict[str, Tensor]:
+        raise NotImplementedError
+
+    def density(self, points: Tensor) -> Tensor:
+        """Volume density sigma (N,) at normalized points (N, 3); volume methods only."""
+        raise NotImplementedError
+
+    def training_state(self) -> dict:
+        """Everything beyond `state_dict()` needed to resume exactly (optimizers, schedules)."""
+        return {}
+
+    def load_training_state(self, state: dict) -> None:
+        pass
+
+    def stats(self) -> dict[str, float]:
+        """Size of the model as it stands (parameters, primitives, occupied voxels...)."""
+        return {"parameters": sum(p.numel() for p in self.parameters())}
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    name: str
+    config_cls: type
+    build: Callable  # (config, scene: SceneInfo) -> Model
+    presets: dict  # preset name -> {field: value} overrides of the config defaults
+
+
+METHODS: dict[str, MethodSpec] = {}
+
+
+def register(spec: MethodSpec) -> MethodSpec:
+    METHODS[spec.name] = spec
+    return spec
