@@ -1,0 +1,118 @@
+"""`recon sfm`: camera poses + sparse points into WS/sfm/ (from photos or known poses)."""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+from pathlib import Path
+
+import click
+
+from recon.cli.common import emit_json, json_option, workspace_option
+from recon.cli.progress import Progress
+from recon.sfm.scene_writer import SceneConfig
+from recon.sfm.sources import SourceError, read_colmap, read_transforms
+from recon.sfm.stage import write_sfm_stage
+from recon.workspace import Workspace
+
+
+@contextlib.contextmanager
+def new_or_existing_workspace(root: Path):
+    """Open/create the workspace; if this command created it and then fails, remove it again,
+    so a failed first command leaves the disk as it was."""
+    existed = (root / "workspace.json").exists()
+    root_existed = root.exists()
+    ws = Workspace.create(root)
+    try:
+        yield ws
+    except BaseException:
+        if not existed:
+            if root_existed:
+                (root / "workspace.json").unlink(missing_ok=True)
+                shutil.rmtree(root / ".locks", ignore_errors=True)
+            else:
+                shutil.rmtree(root, ignore_errors=True)
+        raise
+
+
+def _photo_sfm(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress):
+    from recon.sfm.photo_stage import photos_to_workspace
+
+    return photos_to_workspace(images, ws, cfg, options, progress)
+
+
+@click.command()
+@click.argument("images", required=False, type=click.Path(path_type=Path))
+@workspace_option
+@click.option("--from-transforms", "transforms", type=click.Path(path_type=Path),
+              help="Known poses: a transforms*.json (nerfstudio / instant-ngp / Blender) or a folder "
+                   "with transforms_{train,val,test}.json (its split is kept).")
+@click.option("--from-colmap", "colmap_dir", type=click.Path(path_type=Path),
+              help="Known poses: a COLMAP sparse model folder (text or binary).")
+@click.option("--images", "colmap_images", type=click.Path(path_type=Path),
+              help="With --from-colmap: the images folder (default: next to the model).")
+@click.option("--downscale", default=1, show_default=True, type=click.IntRange(1, 64),
+              help="Integer downscale factor (area resampling; intrinsics scaled exactly).")
+@click.option("--background", type=click.Choice(["auto", "white", "black"]), default="auto",
+              show_default=True, help="Colour that transparent pixels are composited on (auto: white).")
+@click.option("--scene", "scene_kind", type=click.Choice(["auto", "bounded", "unbounded"]), default="auto",
+              show_default=True, help="Bounded object (box) or unbounded capture (contraction); "
+                                      "auto: bounded when the images have alpha.")
+@click.option("--holdout-every", default=8, show_default=True, type=click.IntRange(2, 1000),
+              help="Every N-th image is held out for testing unless the dataset has a split.")
+@click.option("--max-image-size", default=None, type=int, help="Photos: SIFT works on images resized to this.")
+@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default="auto",
+              show_default=True, help="Photos: feature matcher (auto: exhaustive for small sets).")
+@click.option("--mapper", type=click.Choice(["incremental", "global"]), default="incremental",
+              show_default=True, help="Photos: mapper.")
+@click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
+              help="Photos: COLMAP camera model (SIMPLE_RADIAL, OPENCV, PINHOLE, ...).")
+@click.option("--single-camera/--multi-camera", default=True, show_default=True,
+              help="Photos: one shared camera (one device) or one per image.")
+@click.option("--seed", default=0, show_default=True, help="Photos: random seed.")
+@json_option
+@click.pass_context
+def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale, background,
+        scene_kind, holdout_every, max_image_size, matcher, mapper, camera_model, single_camera,
+        seed, as_json):
+    """Camera poses and sparse points -> WS/sfm/ (COLMAP model, cameras.json, points.ply, report).
+
+    \b
+    recon sfm PHOTOS -w WS                      structure from motion (COLMAP via pycolmap)
+    recon sfm --from-transforms F|DIR -w WS     known poses (transforms*.json)
+    recon sfm --from-colmap MODEL -w WS         known poses (COLMAP model)
+    """
+    sources = [x for x in (images, transforms, colmap_dir) if x is not None]
+    if len(sources) != 1:
+        raise click.UsageError("give exactly one of IMAGES, --from-transforms, --from-colmap")
+    cfg = SceneConfig(downscale=downscale, background=background, scene=scene_kind,
+                      holdout_every=holdout_every)
+    root = Path(workspace)
+    with Progress(enabled=not as_json) as progress:
+        if images is not None:
+            if not images.exists():
+                raise SourceError(f"photo folder {images} does not exist")
+            options = dict(max_image_size=max_image_size, matcher=matcher, mapper=mapper,
+                           camera_model=camera_model, single_camera=single_camera, seed=seed,
+                           verbose=ctx.obj["verbose"])
+            with new_or_existing_workspace(root) as ws:
+                report = _photo_sfm(images, ws, cfg, options, progress)
+        else:
+            if transforms is not None:
+                posed = read_transforms(transforms)
+                inputs = {"source": transforms}
+                record = {"source": "transforms", "path": str(transforms)}
+            else:
+                posed = read_colmap(colmap_dir, colmap_images)
+                inputs = {"source": colmap_dir}
+                record = {"source": "colmap", "path": str(colmap_dir)}
+            image_dirs = sorted({f.path.parent for f in posed.frames})
+            for i, d in enumerate(image_dirs):
+                if not any(str(d).startswith(str(Path(p).resolve())) for p in inputs.values()):
+                    inputs[f"images{i}"] = d
+            with new_or_existing_workspace(root) as ws:
+                report = write_sfm_stage(ws, posed, cfg, inputs, record, progress=progress)
+    if as_json:
+        emit_json({"workspace": str(root), **report})
+    else:
+        click.echo(f"sfm: {report['images']} images {report['splits']} -> {root / 'sfm'}")

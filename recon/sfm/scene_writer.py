@@ -1,0 +1,143 @@
+"""Posed images -> the workspace's scene: undistorted, downscaled images, a PINHOLE COLMAP
+model, `cameras.json` (normalized cameras, normalization, split, box) and `points.ply`.
+
+Everything is built in temporary folders and swapped in at the end, so a failure leaves the
+previous `images/` and `sfm/` as they were.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from recon.io.images import composite, read_image, resize_area, write_png
+from recon.io.ply import write_points_ply
+from recon.sfm.normalize import normalize_scene
+from recon.sfm.sources import PosedImages, SourceError
+
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    downscale: int = 1  # integer factor; images are area-resampled and intrinsics scaled exactly
+    background: str = "auto"  # white | black | auto (white when the input has alpha, else unused)
+    scene: str = "auto"  # bounded | unbounded | auto (bounded when the input has alpha)
+    holdout_every: int = 8  # every N-th image is a test view unless the dataset defines a split
+
+
+def undistort(img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undistort once (OpenCV model) to a pinhole with only valid pixels (alpha=0)."""
+    h, w = img.shape[:2]
+    newK, _ = cv2.getOptimalNewCameraMatrix(K, dist, (w, h), 0.0, (w, h))
+    # cv2 uses pixel centres at integers; shift our +0.5 convention in and out.
+    shift = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1]])
+    K_cv, newK_cv = shift @ K, newK
+    m1, m2 = cv2.initUndistortRectifyMap(K_cv, dist, None, newK_cv, (w, h), cv2.CV_32FC1)
+    out = cv2.remap(img, m1, m2, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out, np.linalg.inv(shift) @ newK_cv
+
+
+def prepare_image(frame, cfg: SceneConfig, background) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Load, composite, undistort and downscale one image -> (rgb, K, had_alpha)."""
+    try:
+        img = read_image(frame.path)
+    except ValueError as e:
+        raise SourceError(str(e)) from e
+    had_alpha = img.shape[-1] == 4
+    K = frame.K.copy()
+    img = composite(img, background) if had_alpha else img
+    if frame.dist is not None:
+        img, K = undistort(img, K, frame.dist)
+    if cfg.downscale > 1:
+        h, w = img.shape[:2]
+        nw, nh = w // cfg.downscale, h // cfg.downscale
+        img = resize_area(img, nw, nh)
+        K[0, :] *= nw / w
+        K[1, :] *= nh / h
+    return img, K, had_alpha
+
+
+def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out: Path,
+                images_rel: str, progress=None) -> dict:
+    """Write images into `images_out` and the sfm files into `sfm_out` (both fresh folders).
+    `images_rel` is how cameras.json names the final images folder. Returns a summary."""
+    first = read_image(posed.frames[0].path)
+    has_alpha = first.shape[-1] == 4
+    bg_name = cfg.background if cfg.background != "auto" else "white"
+    background = np.array(BACKGROUNDS[bg_name], dtype=np.float32)
+    per_split = len({f.split for f in posed.frames}) > 1 and any(f.split == "val" for f in posed.frames)
+    records, Ks, sizes = [], [], []
+    for i, frame in enumerate(posed.frames):
+        img, K, _ = prepare_image(frame, cfg, background)
+        rel = f"{frame.split}/{frame.name}.png" if per_split else f"{frame.name}.png"
+        write_png(images_out / rel, img)
+        records.append((frame, rel, img.shape[1], img.shape[0]))
+        Ks.append(K)
+        sizes.append((img.shape[1], img.shape[0]))
+        if progress:
+            progress("images", i + 1, len(posed.frames))
+    Ks, sizes = np.stack(Ks), np.array(sizes, dtype=np.float64)
+    world_from_cam = np.stack([f.world_from_cam for f in posed.frames])
+    sim, aabb = normalize_scene(world_from_cam, Ks, sizes, posed.points)
+    scene_from_cam = sim.world_from_cam_to_scene(world_from_cam)
+    bounded = has_alpha if cfg.scene == "auto" else cfg.scene == "bounded"
+    frames_json = []
+    for (frame, rel, w, h), K, s_from_c in zip(records, Ks, scene_from_cam):
+        frames_json.append({
+            "name": frame.name, "split": frame.split, "image": f"{images_rel}/{rel}",
+            "width": int(w), "height": int(h),
+            "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+            "cam_from_world": np.linalg.inv(s_from_c).tolist(),
+        })
+    cameras = {
+        "convention": "OpenCV camera frame; cam_from_world maps the normalized scene frame to the camera",
+        "scene_from_world": sim.to_json(),
+        "aabb": aabb.tolist(),
+        "unbounded": not bounded,
+        "background": background.tolist(),
+        "near": 0.02,
+        "far": 4.0 if bounded else 1000.0,
+        "config": asdict(cfg),
+        "source": posed.source,
+        "frames": frames_json,
+    }
+    sfm_out.mkdir(parents=True, exist_ok=True)
+    (sfm_out / "cameras.json").write_text(json.dumps(cameras, indent=1) + "\n")
+    write_colmap_model(sfm_out / "sparse", records, Ks, world_from_cam, posed)
+    if posed.points is not None and len(posed.points):
+        write_points_ply(sfm_out / "points.ply", posed.points, posed.point_colors)
+    splits = {}
+    for f in posed.frames:
+        splits[f.split] = splits.get(f.split, 0) + 1
+    return {"images": len(posed.frames), "splits": splits, "bounded": bounded,
+            "scale": sim.scale, "points": 0 if posed.points is None else len(posed.points)}
+
+
+def write_colmap_model(out: Path, records, Ks, world_from_cam, posed: PosedImages) -> None:
+    """PINHOLE COLMAP binary model in the ORIGINAL world frame (one camera per distinct K/size)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[tuple, int] = {}
+    for i, ((frame, rel, w, h), K) in enumerate(zip(records, Ks)):
+        key = (w, h) + tuple(np.round(K[[0, 1, 0, 1], [0, 1, 2, 2]], 6))
+        if key not in cam_ids:
+            cam_ids[key] = len(cam_ids) + 1
+            cam = pycolmap.Camera.create_from_model_name(cam_ids[key], "PINHOLE", 1.0, int(w), int(h))
+            cam.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+            rec.add_camera_with_trivial_rig(cam)
+        cam_from_world = np.linalg.inv(world_from_cam[i])
+        pose = pycolmap.Rigid3d(cam_from_world[:3, :])
+        image = pycolmap.Image(name=rel, camera_id=cam_ids[key], image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pose)
+    if posed.points is not None:
+        colors = posed.point_colors if posed.point_colors is not None else np.full((len(posed.points), 3), 128)
+        for p, c in zip(posed.points, colors):
+            rec.add_point3D(np.asarray(p, float), pycolmap.Track(), np.asarray(c, np.uint8))
+    out.mkdir(parents=True, exist_ok=True)
+    rec.write(str(out))

@@ -1,0 +1,216 @@
+"""Known-pose inputs -> `PosedImages` (OpenCV `world_from_cam`, pixel intrinsics, splits).
+
+Foreign conventions are converted here and nowhere else: transforms.json stores OpenGL
+camera-to-world matrices; COLMAP stores `cam_from_world` with quaternions.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from recon.cameras.conventions import opencv_c2w_from_opengl_c2w
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+
+
+class SourceError(ValueError):
+    """Malformed or missing pose input; the CLI shows it as one line."""
+
+
+@dataclass
+class PosedImage:
+    name: str  # unique stem used for every per-view output
+    path: Path
+    K: np.ndarray  # (3, 3) pixels, for the image at its file size
+    dist: np.ndarray | None  # OpenCV (k1, k2, p1, p2) or None for a pinhole
+    world_from_cam: np.ndarray  # (4, 4) OpenCV convention
+    split: str  # train | val | test
+
+
+@dataclass
+class PosedImages:
+    frames: list[PosedImage]
+    points: np.ndarray | None = None  # (P, 3) world
+    point_colors: np.ndarray | None = None  # (P, 3) uint8
+    source: str = ""
+    extra: dict = field(default_factory=dict)
+
+
+def _resolve_image(base: Path, file_path: str) -> Path:
+    p = (base / file_path).resolve()
+    if p.exists():
+        return p
+    for suffix in IMAGE_SUFFIXES:  # Blender files omit the extension
+        q = p.with_name(p.name + suffix)
+        if q.exists():
+            return q
+    raise SourceError(f"image {file_path} listed in transforms is missing under {base}")
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SourceError(f"cannot read image {path}")
+    return img.shape[1], img.shape[0]
+
+
+def _intrinsics(meta: dict, frame: dict, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per-frame keys override top-level ones (nerfstudio); Blender has only camera_angle_x."""
+    get = lambda k: frame.get(k, meta.get(k))  # noqa: E731
+    w, h = get("w"), get("h")
+    if w is None or h is None:
+        w, h = _image_size(path)
+    w, h = float(w), float(h)
+    if get("fl_x") is not None:
+        fx = float(get("fl_x"))
+        fy = float(get("fl_y") if get("fl_y") is not None else fx)
+    elif get("camera_angle_x") is not None:
+        fx = 0.5 * w / np.tan(0.5 * float(get("camera_angle_x")))
+        fy = 0.5 * h / np.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") else fx
+    else:
+        raise SourceError("transforms has neither fl_x nor camera_angle_x")
+    cx = float(get("cx") if get("cx") is not None else w / 2)
+    cy = float(get("cy") if get("cy") is not None else h / 2)
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    dist = np.array([float(get(k) or 0.0) for k in ("k1", "k2", "p1", "p2")])
+    return K, (dist if np.any(dist != 0) else None)
+
+
+def _read_transforms_file(path: Path, split: str | None) -> list[PosedImage]:
+    try:
+        meta = json.loads(path.read_text())
+        frames = meta["frames"]
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise SourceError(f"{path} is not valid JSON ({e})") from e
+    except (KeyError, TypeError) as e:
+        raise SourceError(f"{path} has no 'frames' list") from e
+    if not frames:
+        raise SourceError(f"{path} lists no frames")
+    out = []
+    for i, fr in enumerate(frames):
+        try:
+            c2w_gl = np.asarray(fr["transform_matrix"], dtype=np.float64)
+            file_path = fr["file_path"]
+        except (KeyError, TypeError) as e:
+            raise SourceError(f"{path}: frame {i} lacks {e}") from e
+        if c2w_gl.shape != (4, 4) or not np.all(np.isfinite(c2w_gl)):
+            raise SourceError(f"{path}: frame {i} transform_matrix is not a finite 4x4 matrix")
+        img_path = _resolve_image(path.parent, file_path)
+        K, dist = _intrinsics(meta, fr, img_path)
+        name = img_path.stem
+        out.append(PosedImage(name, img_path, K, dist, opencv_c2w_from_opengl_c2w(c2w_gl), split or ""))
+    return out
+
+
+def holdout_split(names: list[str], every: int = 8) -> list[str]:
+    """Every `every`-th image (in name order) is held out for testing, as the field does."""
+    order = sorted(range(len(names)), key=lambda i: names[i])
+    split = ["train"] * len(names)
+    for rank, i in enumerate(order):
+        if rank % every == 0:
+            split[i] = "test"
+    return split
+
+
+def _dedupe_names(frames: list[PosedImage]) -> None:
+    """Names must be unique within a split (renders go to renders/<split>/rgb/<name>.png)."""
+    seen: dict[tuple[str, str], int] = {}
+    for f in frames:
+        key = (f.split, f.name)
+        seen[key] = seen.get(key, 0) + 1
+        if seen[key] > 1:
+            f.name = f"{f.name}_{seen[key]}"
+
+
+def read_transforms(path: Path) -> PosedImages:
+    """A transforms*.json file, or a folder with transforms.json or transforms_{split}.json."""
+    path = Path(path)
+    if not path.exists():
+        raise SourceError(f"{path} does not exist")
+    if path.is_dir():
+        split_files = {s: path / f"transforms_{s}.json" for s in ("train", "val", "test")}
+        split_files = {s: p for s, p in split_files.items() if p.exists()}
+        if split_files:
+            frames = [f for s, p in split_files.items() for f in _read_transforms_file(p, s)]
+        elif (path / "transforms.json").exists():
+            return read_transforms(path / "transforms.json")
+        else:
+            raise SourceError(f"{path} holds no transforms.json or transforms_<split>.json")
+    else:
+        frames = _read_transforms_file(path, None)
+        for f, s in zip(frames, holdout_split([f.name for f in frames])):
+            f.split = s
+    _dedupe_names(frames)
+    return PosedImages(frames, source=str(path))
+
+
+def read_colmap(model_dir: Path, images_dir: Path | None = None) -> PosedImages:
+    """A COLMAP sparse model (text or binary). Images are looked up in `images_dir`, else in
+    `model_dir/../images` or `model_dir/../../images` (COLMAP's usual layouts)."""
+    import pycolmap
+
+    model_dir = Path(model_dir)
+    if not model_dir.exists():
+        raise SourceError(f"{model_dir} does not exist")
+    if not any((model_dir / f"cameras.{e}").exists() for e in ("bin", "txt")):
+        cand = [p for p in (model_dir / "sparse", model_dir / "sparse" / "0", model_dir / "0")
+                if any((p / f"cameras.{e}").exists() for e in ("bin", "txt"))]
+        if not cand:
+            raise SourceError(f"{model_dir} holds no COLMAP model (cameras.bin/.txt)")
+        model_dir = cand[0]
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises bare RuntimeErrors
+        raise SourceError(f"cannot read COLMAP model {model_dir}: {e}") from e
+    roots = [images_dir] if images_dir else [model_dir.parent / "images", model_dir.parent.parent / "images",
+                                            model_dir.parent.parent.parent / "images"]
+    root = next((r for r in roots if r and r.exists()), None)
+    if root is None:
+        raise SourceError(f"no images folder found for {model_dir}; pass --images")
+    frames = []
+    for image_id in sorted(rec.reg_image_ids()):
+        im = rec.images[image_id]
+        cam = rec.cameras[im.camera_id]
+        K, dist = colmap_camera_to_opencv(cam)
+        cam_from_world = np.eye(4)
+        cam_from_world[:3, :] = im.cam_from_world().matrix()
+        frames.append(PosedImage(Path(im.name).stem, root / im.name, K, dist,
+                                 np.linalg.inv(cam_from_world), ""))
+    if not frames:
+        raise SourceError(f"COLMAP model {model_dir} has no registered images")
+    for f, s in zip(frames, holdout_split([f.name for f in frames])):
+        f.split = s
+    _dedupe_names(frames)
+    pts = rec.points3D
+    xyz = np.array([p.xyz for p in pts.values()]) if len(pts) else None
+    rgb = np.array([p.color for p in pts.values()], dtype=np.uint8) if len(pts) else None
+    return PosedImages(frames, xyz, rgb, source=str(model_dir))
+
+
+def colmap_camera_to_opencv(cam) -> tuple[np.ndarray, np.ndarray | None]:
+    """COLMAP camera -> (K, OpenCV distortion or None). COLMAP's principal point is already in
+    the pixel-edge convention we use (centre of the first pixel at 0.5)."""
+    p = np.asarray(cam.params, dtype=np.float64)
+    model = cam.model_name if hasattr(cam, "model_name") else str(cam.model).split(".")[-1]
+    if model == "SIMPLE_PINHOLE":
+        f, cx, cy = p
+        return np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]]), None
+    if model == "PINHOLE":
+        fx, fy, cx, cy = p
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), None
+    if model == "SIMPLE_RADIAL":
+        f, cx, cy, k = p
+        return np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]]), np.array([k, 0, 0, 0])
+    if model == "RADIAL":
+        f, cx, cy, k1, k2 = p
+        return np.array([[f, 0, cx], [0, f, cy], [0, 0, 1]]), np.array([k1, k2, 0, 0])
+    if model == "OPENCV":
+        fx, fy, cx, cy, k1, k2, p1, p2 = p
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), np.array([k1, k2, p1, p2])
+    raise SourceError(f"COLMAP camera model {model} is not supported (use PINHOLE/RADIAL/OPENCV)")

@@ -1,0 +1,31 @@
+"""The `sfm` stage: validate the input, build the scene in temporary folders, swap it into the
+workspace, and record the stage (config, input hashes, versions, timing)."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from recon.sfm.scene_writer import SceneConfig, write_scene
+from recon.sfm.sources import PosedImages
+from recon.workspace import Workspace, atomic_dir
+
+
+def write_sfm_stage(ws: Workspace, posed: PosedImages, cfg: SceneConfig, inputs: dict[str, Path],
+                    config_record: dict, report: dict | None = None, progress=None) -> dict:
+    """Write images/ and sfm/ atomically from posed images and record the `sfm` stage."""
+    started = time.time()
+    with ws.writer_lock("sfm"):
+        with atomic_dir(ws.images_dir) as images_tmp, atomic_dir(ws.sfm_dir) as sfm_tmp:
+            summary = write_scene(posed, cfg, images_tmp, sfm_tmp, ws.rel(ws.images_dir), progress)
+            full_report = {**(report or {}), **summary}
+            (sfm_tmp / "report.json").write_text(json.dumps(full_report, indent=2) + "\n")
+        ended = time.time()
+        ws.record_stage(
+            "sfm", config={**config_record, **asdict(cfg)}, inputs=inputs,
+            outputs={"cameras": ws.cameras_json, "images": ws.images_dir},
+            upstream=[], started=started, ended=ended, extra={"summary": summary},
+        )
+    return full_report
