@@ -18,8 +18,8 @@ class ReconGroup(click.Group):
             return super().invoke(ctx)
         except (click.ClickException, click.exceptions.Exit, click.Abort, SystemExit):
             raise
-        except KeyboardInterrupt:
-            click.echo("interrupted", err=True)
+        except KeyboardInterrupt as e:
+            click.echo(f"interrupted: {e}" if str(e) else "interrupted", err=True)
             sys.exit(130)
         except Exception as e:  # noqa: BLE001 - the CLI boundary
             fail(e, verbose=ctx.obj.get("verbose", False) if ctx.obj else False)

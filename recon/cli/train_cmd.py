@@ -1,0 +1,81 @@
+"""`recon train`: fit nerf / ngp / plenoxel / 3dgs to the workspace's scene."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import click
+
+from recon.cli.common import emit_json, json_option, workspace_option
+from recon.cli.progress import Progress
+from recon.train.config import TrainConfig, field_help
+from recon.train.stage import import_methods, train
+from recon.workspace import Workspace
+
+METHOD_NAMES = sorted(import_methods())
+
+
+def _list_options(method: str) -> str:
+    spec = import_methods()[method]
+    helps = field_help(spec.config_cls)
+    lines = [f"options of --method {method} (set with --set KEY=VALUE); presets: {', '.join(spec.presets)}"]
+    for f in dataclasses.fields(spec.config_cls):
+        lines.append(f"  {f.name} = {f.default!r}  {helps.get(f.name, '')}")
+    return "\n".join(lines)
+
+
+@click.command("train")
+@workspace_option
+@click.option("--method", "-m", required=True, type=click.Choice(METHOD_NAMES),
+              help="Scene representation to train.")
+@click.option("--run", "run", default=None, help="Run name (default: the method name).")
+@click.option("--preset", default="fast", show_default=True,
+              help="fast: sized for a CPU; paper: the paper's settings (GPU-sized).")
+@click.option("--steps", default=0, show_default=True, help="Stop after N steps (0: no limit).")
+@click.option("--time-budget", "time_budget", default=0.0, show_default=True,
+              help="Stop after this many seconds of training (0: no limit).")
+@click.option("--patience", default=0, show_default=True,
+              help="Stop when held-out PSNR has not improved for this many evaluations (0: off).")
+@click.option("--eval-every", default=30.0, show_default=True,
+              help="Seconds of training between held-out PSNR evaluations (the speed-vs-error curve).")
+@click.option("--eval-views", default=4, show_default=True, help="Held-out views used for that PSNR.")
+@click.option("--checkpoint-every", default=60.0, show_default=True, help="Seconds between checkpoints.")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--threads", default=0, show_default=True, help="CPU threads (0: all cores).")
+@click.option("--device", default="auto", type=click.Choice(["auto", "cpu", "cuda"]), show_default=True)
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a method option (repeatable); see --list-options.")
+@click.option("--list-options", is_flag=True, help="List the method's options with their help and exit.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted run from its last checkpoint.")
+@click.option("--force", is_flag=True, help="Overwrite an existing run / train on a stale sfm stage.")
+@json_option
+def command(workspace, method, run, preset, steps, time_budget, patience, eval_every, eval_views,
+            checkpoint_every, seed, threads, device, overrides, list_options, resume, force, as_json):
+    """Train a scene representation -> WS/runs/RUN/ (run.json, log.jsonl, checkpoints/, model.pt).
+
+    Without --steps, --time-budget or --patience the method's own step count applies.
+    Ctrl-C saves a checkpoint; `--resume` continues from it.
+    """
+    if list_options:
+        click.echo(_list_options(method))
+        return
+    ws = Workspace.open(workspace)
+    spec = import_methods()[method]
+    if not (steps or time_budget or patience):
+        steps = int(getattr(spec.config_cls(**spec.presets.get(preset, {})), "default_steps", 0)) or 0
+        if not steps:
+            raise click.UsageError("give --steps, --time-budget or --patience")
+    cfg = TrainConfig(method=method, preset=preset, steps=steps, time_budget_s=time_budget,
+                      seed=seed, eval_every_s=eval_every, eval_views=eval_views, patience=patience,
+                      checkpoint_every_s=checkpoint_every, threads=threads, device=device)
+    run = run or method
+    with Progress(enabled=not as_json) as progress:
+        summary = train(ws, run, cfg, list(overrides), resume, force, log_fn=progress.log,
+                        progress=progress)
+    if as_json:
+        emit_json(summary)
+    else:
+        psnr = summary["best_test_psnr"]
+        click.echo(f"train: run '{run}' {summary['steps']} steps in {summary['train_wall_s']:.1f} s "
+                   f"(stopped: {summary['stop_reason']}); held-out PSNR "
+                   f"{'n/a' if psnr is None else f'{psnr:.2f} dB'} -> {ws.run_dir(run)}")

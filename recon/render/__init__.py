@@ -1,0 +1,1 @@
+"""Stage 3, `recon render`: images, metric depth and videos from a trained run."""

@@ -1,0 +1,113 @@
+"""The `render` stage: dataset views or a camera path -> rgb/*.png, depth/*.exr (metric z-depth
+in the ORIGINAL scene units), optional video.mp4, and the render time per frame."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from recon.cameras.cameras import Cameras
+from recon.io.exr import write_depth_exr
+from recon.io.images import to_uint8, write_png
+from recon.render.paths import interpolate_path, orbit_path, spiral_path
+from recon.train.stage import load_model, model_path, pick_device
+from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    split: str = "test"  # dataset split to render (when no path is given)
+    path: str = ""  # orbit | spiral | interpolate: a camera path instead of a split
+    frames: int = 60  # frames of the camera path
+    video: bool = False  # also write video.mp4
+    fps: int = 30  # video frame rate
+    device: str = "auto"  # auto | cpu | cuda
+
+
+def path_cameras(scene, kind: str, frames: int, device) -> tuple[Cameras, list[str]]:
+    train = scene.split("train")
+    cams = scene.cameras(train).to(dtype=torch.float64)
+    target = scene.info.aabb.double().mean(0)
+    w2c = cams.world_from_cam
+    if kind == "orbit":
+        c2w = orbit_path(w2c[:, :3, 3], target, frames)
+    elif kind == "spiral":
+        c2w = spiral_path(w2c, target, frames)
+    elif kind == "interpolate":
+        order = sorted(range(len(train)), key=lambda i: scene.frames[train[i]]["name"])
+        c2w = interpolate_path(w2c[order], frames)
+    else:
+        raise WorkspaceError(f"unknown camera path {kind!r} (orbit, spiral, interpolate)")
+    K = cams.K[:1].expand(frames, 3, 3).clone()
+    out = Cameras(K, c2w, cams.width[:1].expand(frames).clone(), cams.height[:1].expand(frames).clone())
+    return out.to(device=device, dtype=torch.float32), [f"{i:04d}" for i in range(frames)]
+
+
+def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, progress=None) -> dict:
+    key = f"train/{run}"
+    ws.require_fresh(key, force)
+    device = pick_device(cfg.device)
+    model, scene, _ = load_model(ws, run, device)
+    if cfg.path:
+        cams, names = path_cameras(scene, cfg.path, cfg.frames, device)
+        target = cfg.path
+    else:
+        idx = scene.split(cfg.split)
+        if not idx:
+            raise WorkspaceError(f"the scene has no '{cfg.split}' views")
+        cams, names = scene.cameras(idx, device), [scene.frames[i]["name"] for i in idx]
+        target = cfg.split
+    out_dir = ws.renders_dir(run, target)
+    started = time.time()
+    times, frames_rgb = [], []
+    for i in range(len(cams)):
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = model.render(cams[i])
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+        rgb = out["rgb"].clamp(0, 1).cpu().numpy()
+        depth = out["depth"].float().cpu().numpy()
+        acc = out["acc"].float().cpu().numpy()
+        # pixels the scene does not cover have no surface: depth 0 (see recon.io.exr)
+        depth_world = np.where(acc > 0.5, scene.depth_to_world_units(depth), 0.0).astype(np.float32)
+        write_png(out_dir / "rgb" / f"{names[i]}.png", rgb)
+        write_depth_exr(out_dir / "depth" / f"{names[i]}.exr", depth_world)
+        if cfg.video:
+            frames_rgb.append(to_uint8(rgb))
+        if progress:
+            progress("render", i + 1, len(cams), ms_per_frame=round(1000 * np.mean(times), 1))
+    if cfg.video:
+        write_video(out_dir / "video.mp4", frames_rgb, cfg.fps)
+    result = {"run": run, "target": target, "frames": len(cams), "out": str(out_dir),
+              "ms_per_frame": round(1000 * float(np.mean(times)), 2),
+              "ms_per_frame_median": round(1000 * float(np.median(times)), 2),
+              "resolution": [int(cams.width[0]), int(cams.height[0])], "device": str(device)}
+    atomic_write_json(out_dir / "render.json", result)
+    ws.record_stage(f"render/{run}/{target}", config=cfg.__dict__, inputs={"model": model_path(ws, run)},
+                    outputs={"renders": out_dir}, upstream=[key], started=started, ended=time.time(),
+                    extra={"ms_per_frame": result["ms_per_frame"]})
+    return result
+
+
+def write_video(path, frames: list[np.ndarray], fps: int) -> None:
+    import imageio.v2 as imageio
+
+    with atomic_path(path) as tmp:
+        # H.264 needs even sizes; pad by one pixel row/column if necessary
+        h, w = frames[0].shape[:2]
+        pad = ((0, h % 2), (0, w % 2), (0, 0))
+        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", quality=8,
+                                macro_block_size=1, format="FFMPEG") as writer:
+            for f in frames:
+                writer.append_data(np.pad(f, pad, mode="edge"))
+
+
+def read_render_json(ws: Workspace, run: str, target: str) -> dict | None:
+    p = ws.renders_dir(run, target) / "render.json"
+    return json.loads(p.read_text()) if p.exists() else None

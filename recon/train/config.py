@@ -1,0 +1,80 @@
+"""Training-loop configuration and method-config overrides (`--set key=value`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import re
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    method: str  # nerf | ngp | plenoxel | 3dgs
+    preset: str = "fast"  # fast (CPU default) | paper (the paper's settings; GPU-sized)
+    steps: int = 0  # stop after this many steps (0 = no step limit)
+    time_budget_s: float = 0.0  # stop after this much training wall time (0 = no limit)
+    seed: int = 0  # seeds torch/numpy; same seed + threads + device = same run
+    eval_every_s: float = 30.0  # held-out PSNR every this many seconds of training time
+    eval_views: int = 4  # held-out views used for the periodic PSNR (evenly spaced test views)
+    patience: int = 0  # stop when held-out PSNR has not improved for this many evals (0 = off)
+    min_improvement_db: float = 0.05  # what counts as an improvement for `patience`
+    checkpoint_every_s: float = 60.0  # checkpoint interval in training seconds (and at the end)
+    keep_checkpoints: int = 2  # older checkpoints are deleted
+    threads: int = 0  # torch CPU threads (0 = all cores)
+    device: str = "auto"  # auto (cuda when available) | cpu | cuda
+
+
+def field_help(cls) -> dict[str, str]:
+    """The `# comment` after each dataclass field, used as its help text."""
+    try:
+        src = inspect.getsource(cls)
+    except (OSError, TypeError):
+        return {}
+    out = {}
+    for m in re.finditer(r"^\s+(\w+)\s*:[^=\n]+=[^#\n]*#\s*(.+)$", src, re.MULTILINE):
+        out[m.group(1)] = m.group(2).strip()
+    return out
+
+
+def _parse_value(text: str, typ, default):
+    kind = typ if isinstance(typ, type) else type(default)
+    if kind is bool or isinstance(default, bool):
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"expected a boolean, got {text!r}")
+    if isinstance(default, tuple):
+        return tuple(type(default[0])(v) if default else float(v) for v in text.split(","))
+    if isinstance(default, int):
+        return int(float(text)) if float(text).is_integer() else int(text)
+    if isinstance(default, float):
+        return float(text)
+    return text
+
+
+def apply_overrides(cls, base: dict, overrides: list[str]) -> dict:
+    """`key=value` strings -> updated field dict, validated against the dataclass `cls`."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = dict(base)
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        key = key.strip().replace("-", "_")
+        if key not in fields:
+            raise ValueError(f"unknown option {key!r} for {cls.__name__}; see --list-options")
+        f = fields[key]
+        default = out.get(key, f.default)
+        try:
+            out[key] = _parse_value(value.strip(), f.type, default)
+        except ValueError as e:
+            raise ValueError(f"--set {key}: {e}") from e
+    return out
+
+
+def build_config(cls, presets: dict, preset: str, overrides: list[str]):
+    if preset not in presets:
+        raise ValueError(f"unknown preset {preset!r} (choose from {', '.join(presets)})")
+    return cls(**apply_overrides(cls, dict(presets[preset]), overrides))

@@ -1,0 +1,110 @@
+"""The training loop: steps, held-out PSNR on a wall-clock schedule, checkpoints, stopping.
+
+Wall time in the log counts training only: evaluation and checkpointing are excluded, so
+the speed-vs-error curve measures the method, not our bookkeeping.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from recon.cameras import Cameras
+from recon.models.base import Model, TrainData
+from recon.train.config import TrainConfig
+
+
+@dataclass
+class LoopState:
+    step: int = 0
+    wall_s: float = 0.0  # training time so far (excludes eval and checkpoints)
+    best_psnr: float = -math.inf
+    evals_since_best: int = 0
+    last_eval_wall: float = -math.inf
+    last_ckpt_wall: float = 0.0
+
+
+@torch.no_grad()
+def heldout_psnr(model: Model, cameras: Cameras, images: torch.Tensor) -> float:
+    """Mean PSNR (dB) of the model's renders of held-out views against the photos."""
+    was_training = model.training
+    model.eval()
+    psnrs = []
+    for i in range(len(cameras)):
+        rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
+        mse = torch.mean((rgb - images[i].to(rgb.device)) ** 2).item()
+        psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+    model.train(was_training)
+    return float(sum(psnrs) / len(psnrs))
+
+
+def should_stop(cfg: TrainConfig, st: LoopState) -> str | None:
+    if cfg.steps and st.step >= cfg.steps:
+        return "steps"
+    if cfg.time_budget_s and st.wall_s >= cfg.time_budget_s:
+        return "time_budget"
+    if cfg.patience and st.evals_since_best >= cfg.patience:
+        return "converged"
+    return None
+
+
+def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs: torch.Tensor | None,
+             cfg: TrainConfig, st: LoopState, log: Callable[[dict], None],
+             checkpoint: Callable[[LoopState], None], progress=None) -> str:
+    """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
+
+    A non-finite loss is never trained on silently: the step is rolled back to the last
+    checkpoint by the caller (raised as FloatingPointError after `max_bad` bad steps in a row).
+    """
+    model.train()
+    bad_in_a_row = 0
+    total = cfg.steps or None
+    while (reason := should_stop(cfg, st)) is None:
+        if held_cams is not None and st.wall_s - st.last_eval_wall >= cfg.eval_every_s:
+            _evaluate(model, held_cams, held_imgs, cfg, st, log)
+            if (reason := should_stop(cfg, st)) is not None:
+                break
+        t0 = time.perf_counter()
+        stats = model.train_step(data, st.step)
+        st.wall_s += time.perf_counter() - t0
+        st.step += 1
+        if not math.isfinite(stats.get("loss", 0.0)):
+            bad_in_a_row += 1
+            log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_loss"})
+            if bad_in_a_row >= 3:
+                raise FloatingPointError(f"loss is not finite for 3 steps in a row at step {st.step}")
+            continue
+        bad_in_a_row = 0
+        if st.step % 10 == 0 or st.step == 1:
+            log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
+        if progress is not None:
+            progress("train", st.step, total, loss=stats.get("loss"), psnr=stats.get("psnr"),
+                     best_test_psnr=None if st.best_psnr == -math.inf else round(st.best_psnr, 2),
+                     t=f"{st.wall_s:.0f}s")
+        if st.wall_s - st.last_ckpt_wall >= cfg.checkpoint_every_s:
+            checkpoint(st)
+            st.last_ckpt_wall = st.wall_s
+    if held_cams is not None and st.last_eval_wall < st.wall_s:
+        _evaluate(model, held_cams, held_imgs, cfg, st, log)
+    return reason
+
+
+def _evaluate(model, cams, imgs, cfg, st: LoopState, log) -> None:
+    t0 = time.perf_counter()
+    psnr = heldout_psnr(model, cams, imgs)
+    st.last_eval_wall = st.wall_s
+    if psnr > st.best_psnr + cfg.min_improvement_db:
+        st.best_psnr, st.evals_since_best = psnr, 0
+    else:
+        st.best_psnr = max(st.best_psnr, psnr)
+        st.evals_since_best += 1
+    log({"step": st.step, "wall_s": round(st.wall_s, 4), "test_psnr": round(psnr, 4),
+         "eval_s": round(time.perf_counter() - t0, 3)})
+
+
+def _round(stats: dict) -> dict:
+    return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in stats.items()}

@@ -1,0 +1,216 @@
+"""The `train` stage: set up a run directory, build the model, run the loop, record it."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import signal
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from recon.models.base import METHODS, MethodSpec
+from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint
+from recon.train.config import TrainConfig, build_config
+from recon.train.loop import LoopState, run_loop
+from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
+from recon.workspace.scene import Scene, load_images, load_scene, load_train_data
+from recon.workspace.workspace import software_versions
+
+MODEL_FILE = "model.pt"
+
+
+def import_methods() -> dict[str, MethodSpec]:
+    """Import every method module so it registers itself; missing ones are simply absent."""
+    import importlib
+
+    for module in ("recon.models.nerf", "recon.models.ngp", "recon.models.plenoxel",
+                   "recon.gaussians.model"):
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as e:
+            if not module.startswith(e.name or "\0"):
+                raise
+    return METHODS
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise WorkspaceError("--device cuda was asked for but no CUDA device is available")
+    return torch.device(name)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def heldout_views(scene: Scene, n: int) -> list[int]:
+    test = scene.split("test") or scene.split("val")
+    if not test or n <= 0:
+        return []
+    pick = np.linspace(0, len(test) - 1, min(n, len(test))).round().astype(int)
+    return [test[i] for i in sorted(set(pick.tolist()))]
+
+
+def model_path(ws: Workspace, run: str) -> Path:
+    return ws.run_dir(run) / MODEL_FILE
+
+
+def save_model(ws: Workspace, run: str, method: str, method_cfg: dict, model) -> Path:
+    path = model_path(ws, run)
+    with atomic_path(path) as tmp:
+        torch.save({"method": method, "config": method_cfg, "state_dict": model.state_dict()}, tmp)
+    return path
+
+
+def load_model(ws: Workspace, run: str, device="cpu"):
+    """Rebuild a trained model of a run -> (model, scene, run.json dict)."""
+    path = model_path(ws, run)
+    if not ws.run_json(run).exists():
+        raise WorkspaceError(f"run '{run}' does not exist in {ws.root} (runs: {', '.join(ws.runs()) or 'none'})")
+    if not path.exists():
+        raise WorkspaceError(f"run '{run}' has no finished model yet (train it or resume it)")
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    spec = import_methods()[saved["method"]]
+    scene = load_scene(ws)
+    model = spec.build(spec.config_cls(**_tuples(spec.config_cls, saved["config"])), scene.info)
+    model.load_state_dict(saved["state_dict"])
+    model.to(device).eval()
+    return model, scene, json.loads(ws.run_json(run).read_text())
+
+
+def _tuples(cls, d: dict) -> dict:
+    import dataclasses
+
+    out = dict(d)
+    for f in dataclasses.fields(cls):
+        if isinstance(f.default, tuple) and isinstance(out.get(f.name), list):
+            out[f.name] = tuple(out[f.name])
+    return out
+
+
+def prepare_run(ws: Workspace, run: str, resume: bool, force: bool) -> None:
+    rd = ws.run_dir(run)
+    if rd.exists() and not resume:
+        if not force:
+            raise WorkspaceError(f"run '{run}' already exists: pass --resume to continue it, "
+                                 "--force to overwrite it, or --run NAME for a new run")
+        shutil.rmtree(rd)
+        ws.forget_stage(f"train/{run}")
+    if resume and not ws.run_json(run).exists():
+        raise WorkspaceError(f"cannot resume: run '{run}' does not exist")
+
+
+def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resume: bool,
+          force: bool, log_fn=print, progress=None) -> dict:
+    """Train (or resume) run `run`; returns the run summary written to run.json."""
+    ws.require_fresh("sfm", force)
+    methods = import_methods()
+    if cfg.method not in methods:
+        raise WorkspaceError(f"unknown method {cfg.method!r} (available: {', '.join(sorted(methods))})")
+    spec = methods[cfg.method]
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    device = pick_device(cfg.device)
+    with ws.writer_lock(f"run-{run}"):
+        prepare_run(ws, run, resume, force)
+        if resume:
+            saved = json.loads(ws.run_json(run).read_text())
+            method_cfg = spec.config_cls(**_tuples(spec.config_cls, saved["config"]))
+            cfg = TrainConfig(**{**saved["train"], **{k: v for k, v in asdict(cfg).items()
+                                                       if k in ("steps", "time_budget_s", "patience")}})
+        else:
+            method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
+        return _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
+
+
+def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress) -> dict:
+    started = time.time()
+    seed_everything(cfg.seed)
+    scene = load_scene(ws)
+    data = load_train_data(ws, scene, "train", device)
+    held = heldout_views(scene, cfg.eval_views)
+    held_cams = scene.cameras(held, device) if held else None
+    held_imgs = load_images(ws, scene, held).to(device) if held else None
+    model = spec.build(method_cfg, scene.info).to(device)
+    run_doc = {"run": run, "method": spec.name, "preset": cfg.preset, "seed": cfg.seed,
+               "config": asdict(method_cfg), "train": asdict(cfg), "versions": software_versions(),
+               "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "status": "running"}
+    st = LoopState()
+    log_path = ws.log_jsonl(run)
+    ckpt_dir = ws.checkpoints_dir(run)
+    if resume:
+        ck = load_latest_checkpoint(ckpt_dir, log_fn)
+        if ck is None:
+            raise WorkspaceError(f"run '{run}' has no readable checkpoint to resume from")
+        model.load_state_dict(ck["model"])
+        model.load_training_state(ck["training"])
+        st = LoopState(**ck["loop"])
+        torch.set_rng_state(ck["rng"])
+        _truncate_log(log_path, st.step)
+        run_doc = {**json.loads(ws.run_json(run).read_text()), "status": "running"}
+        log_fn(f"resumed run '{run}' from step {st.step} ({st.wall_s:.0f} s of training)")
+    atomic_write_json(ws.run_json(run), run_doc)
+    log_file = open(log_path, "a")
+
+    def log(entry: dict) -> None:
+        log_file.write(json.dumps(entry) + "\n")
+        log_file.flush()
+
+    def checkpoint(state: LoopState) -> None:
+        save_checkpoint(ckpt_dir, state.step, {
+            "model": model.state_dict(), "training": model.training_state(),
+            "loop": {k: v for k, v in state.__dict__.items()}, "rng": torch.get_rng_state(),
+        }, cfg.keep_checkpoints)
+
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress)
+    except KeyboardInterrupt:
+        checkpoint(st)
+        log({"step": st.step, "wall_s": st.wall_s, "event": "interrupted"})
+        atomic_write_json(ws.run_json(run), {**run_doc, "status": "interrupted", "step": st.step})
+        log_file.close()
+        raise KeyboardInterrupt(
+            f"interrupted at step {st.step}; checkpoint saved. Resume with: "
+            f"recon train -w {ws.root} --run {run} --resume")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    checkpoint(st)
+    log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
+    log_file.close()
+    save_model(ws, run, spec.name, asdict(method_cfg), model)
+    summary = {**run_doc, "status": "done", "stop_reason": reason, "steps": st.step,
+               "train_wall_s": round(st.wall_s, 3),
+               "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
+               "model_stats": {k: float(v) for k, v in model.stats().items()},
+               "model_bytes": os.path.getsize(model_path(ws, run)),
+               "device": str(device), "threads": torch.get_num_threads()}
+    atomic_write_json(ws.run_json(run), summary)
+    ws.record_stage(f"train/{run}", config={"train": asdict(cfg), "method": asdict(method_cfg)},
+                    inputs={"cameras": ws.cameras_json}, outputs={"model": model_path(ws, run)},
+                    upstream=["sfm"], started=started, ended=time.time(),
+                    extra={"stop_reason": reason, "steps": st.step})
+    return summary
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """Drop log lines written after the checkpoint we resume from."""
+    if not path.exists():
+        return
+    keep = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln).get("step", 0) <= step]
+    with atomic_path(path) as tmp:
+        tmp.write_text("".join(ln + "\n" for ln in keep))
