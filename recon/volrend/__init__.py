@@ -1,0 +1,50 @@
+"""ONE volume-rendering core shared by the volume methods (nerf, ngp, plenoxel).
+
+Pure functions over sample intervals, padded (R, S) or packed (N,) + ray_indices:
+  volrend      - alpha, exclusive transmittance, weights, compositing (seed "Quadrature").
+  samplers     - ray/box intersection, stratified and inverse-CDF (hierarchical) sampling.
+  occupancy    - occupancy bitfield, marching with empty-space skipping, early termination.
+  contraction  - mip-NeRF 360 scene contraction for unbounded scenes.
+"""
+
+from recon.volrend.contraction import contract, normalize_to_box, scene_to_unit_cube
+from recon.volrend.occupancy import OccupancyGrid, march_intervals, terminated_mask
+from recon.volrend.samplers import (
+    intervals_from_points,
+    merge_points,
+    ray_aabb_intersect,
+    sample_pdf,
+    spaced_intervals,
+    stratified_intervals,
+)
+from recon.volrend.volrend import (
+    VolumeRender,
+    accumulate_along_rays,
+    exclusive_cumsum,
+    render_transmittance,
+    render_weights,
+    render_with_fn,
+    volume_render,
+)
+
+__all__ = [
+    "OccupancyGrid",
+    "VolumeRender",
+    "accumulate_along_rays",
+    "contract",
+    "exclusive_cumsum",
+    "intervals_from_points",
+    "march_intervals",
+    "merge_points",
+    "normalize_to_box",
+    "ray_aabb_intersect",
+    "render_transmittance",
+    "render_weights",
+    "render_with_fn",
+    "sample_pdf",
+    "scene_to_unit_cube",
+    "spaced_intervals",
+    "stratified_intervals",
+    "terminated_mask",
+    "volume_render",
+]

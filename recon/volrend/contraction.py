@@ -1,0 +1,44 @@
+"""Scene contraction for unbounded scenes (mip-NeRF 360, seed "The current research frontier"):
+
+    contract(x) = x                        if |x| <= 1
+                  (2 - 1/|x|) x / |x|      otherwise,
+
+which maps all of R^3 into the ball of radius 2, is continuous with continuous first derivative
+at |x| = 1, and sends |x| -> infinity to |contract(x)| -> 2.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def contract(x: Tensor) -> Tensor:
+    """mip-NeRF 360 contraction (L2 norm). x: (..., 3) -> (..., 3) with |out| < 2.
+
+    The outside branch is evaluated at a norm clamped to >= 1, so neither branch produces
+    inf/nan gradients that `torch.where` would otherwise propagate (x = 0, |x| = 1e30).
+    Example: (3, 0, 0) -> (5/3, 0, 0).
+    """
+    norm = x.norm(dim=-1, keepdim=True)
+    safe = norm.clamp_min(1.0)
+    outside = (2.0 - 1.0 / safe) * (x / safe)
+    return torch.where(norm <= 1.0, x, outside)
+
+
+def normalize_to_box(x: Tensor, aabb: Tensor) -> Tensor:
+    """Affine map of the box aabb (2, 3) onto [-1, 1]^3: x (..., 3) -> (..., 3)."""
+    return 2.0 * (x - aabb[0]) / (aabb[1] - aabb[0]) - 1.0
+
+
+def scene_to_unit_cube(x: Tensor, aabb: Tensor, unbounded: bool) -> Tensor:
+    """Points in the world (normalized scene frame) -> [0, 1]^3, the domain of the grids.
+
+    Bounded: the box aabb maps onto [0, 1]^3 (points outside are clamped by the caller's grid).
+    Unbounded: the box maps onto [-1, 1]^3, is contracted into the radius-2 ball, then scaled so
+    the ball's bounding cube [-2, 2]^3 becomes [0, 1]^3 (the box itself occupies [1/4, 3/4]^3).
+    """
+    y = normalize_to_box(x, aabb)
+    if unbounded:
+        return 0.25 * contract(y) + 0.5
+    return 0.5 * y + 0.5

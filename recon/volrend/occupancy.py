@@ -1,0 +1,171 @@
+"""Empty-space skipping and early ray termination (Instant-NGP, seed "Instant-NGP and the
+multiresolution hash grid"; the bitfield scheme of nerfacc's OccupancyGrid).
+
+A bitfield of res^3 cells over the unit cube [0, 1]^3 (the domain every grid model maps its
+scene into, see `contraction.scene_to_unit_cube`) says where the density may be non-zero. Its
+cells hold an EMA of the field's opacity at jittered points in the cell,
+
+    a_c <- max(decay * a_c, 1 - exp(-sigma(x_c) dt)),   occupied_c = a_c > min(thr, mean(a)),
+
+and rays are marched at a fixed step, emitting ONLY the samples whose midpoint lies in an
+occupied cell, as packed samples (N,) + ray_indices for `volrend`. Samples behind the point
+where transmittance falls below `eps` are dropped after a cheap density pre-pass.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from recon.volrend.volrend import render_transmittance
+
+
+def march_intervals(
+    t_min: Tensor, t_max: Tensor, step: float, cone_angle: float = 0.0, u: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Every marching interval of every ray, packed: edges at s_k = s(t_min) + k - u in the warped
+    coordinate s(t) = t / step (cone_angle = 0), or, with cone_angle c > 0, s with
+    ds/dt = 1 / max(step, c t) (steps grow linearly with distance, as Instant-NGP does for
+    unbounded scenes). The first edge is t_min and the last t_max.
+
+    t_min, t_max: (R,) (t_max <= t_min means no sample); u: (R,) in [0, 1) start offsets (jitter),
+    None for 0. Returns ray_indices (N,) int64, t_starts (N,), t_ends (N,), sorted by ray.
+    """
+    s_min, s_max = _warp(t_min, step, cone_angle), _warp(t_max, step, cone_angle)
+    u = torch.zeros_like(s_min) if u is None else u
+    counts = torch.ceil((s_max - s_min + u).clamp_min(0.0)).long()
+    counts = torch.where(t_max > t_min, counts.clamp_min(1), torch.zeros_like(counts))
+    ray_indices = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    k = torch.arange(ray_indices.shape[0], device=counts.device) - first[ray_indices]
+    k = k.to(s_min.dtype)
+    s0, uu = s_min[ray_indices], u[ray_indices]
+    starts = torch.where(k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, step, cone_angle))
+    ends = torch.minimum(_unwarp(s0 + k + 1.0 - uu, step, cone_angle), t_max[ray_indices])
+    keep = ends > starts  # ceil() of a rounded count can add one empty interval at the end
+    return ray_indices[keep], starts[keep], ends[keep]
+
+
+def _warp(t: Tensor, step: float, cone_angle: float) -> Tensor:
+    """s(t): t/step up to t_sw = step/c, then t_sw/step + ln(t/t_sw)/c (log spacing)."""
+    if cone_angle <= 0.0:
+        return t / step
+    t_sw = step / cone_angle
+    log_part = torch.log(t.clamp_min(t_sw) / t_sw) / cone_angle
+    return torch.minimum(t, torch.full_like(t, t_sw)) / step + log_part
+
+
+def _unwarp(s: Tensor, step: float, cone_angle: float) -> Tensor:
+    """Inverse of `_warp`."""
+    if cone_angle <= 0.0:
+        return s * step
+    t_sw = step / cone_angle
+    s_sw = t_sw / step
+    return torch.where(s <= s_sw, s * step, t_sw * torch.exp((s - s_sw).clamp_min(0.0) * cone_angle))
+
+
+def cells_of(x_unit: Tensor, resolution: int) -> tuple[Tensor, Tensor]:
+    """Flat cell index (N,) int64 of unit-cube points x_unit (N, 3) on a res^3 grid (x fastest),
+    and inside (N,) bool (points outside [0, 1]^3 belong to no cell)."""
+    inside = ((x_unit >= 0.0) & (x_unit <= 1.0)).all(dim=-1)
+    ijk = (x_unit * resolution).long().clamp(0, resolution - 1)
+    return ijk[..., 0] + resolution * (ijk[..., 1] + resolution * ijk[..., 2]), inside
+
+
+def cell_points(indices: Tensor, resolution: int, u: Tensor) -> Tensor:
+    """Points in cells: (ijk + u) / res for flat indices (M,) and offsets u (M, 3) in [0, 1)."""
+    i = indices % resolution
+    j = (indices // resolution) % resolution
+    k = indices // (resolution * resolution)
+    return (torch.stack([i, j, k], dim=-1).to(u.dtype) + u) / resolution
+
+
+def terminated_mask(
+    sigmas: Tensor, t_starts: Tensor, t_ends: Tensor, ray_indices: Tensor, eps: float = 1e-4
+) -> Tensor:
+    """Early ray termination: keep sample i iff T_i = exp(-sum_{j<i} sigma_j delta_j) >= eps.
+    Packed (N,) inputs -> (N,) bool. Dropped samples carry at most eps of each ray's weight."""
+    trans = render_transmittance(sigmas * (t_ends - t_starts), ray_indices)
+    return trans >= eps
+
+
+class OccupancyGrid(nn.Module):
+    """A res^3 occupancy bitfield over the unit cube, updated from a density closure.
+
+    Buffers (so `state_dict` carries them for an exact resume): `opacity` (res^3,) float EMA,
+    `occupied` (res^3,) bool, all True until the first update after warm-up.
+    """
+
+    def __init__(self, resolution: int = 128):
+        super().__init__()
+        self.resolution = resolution
+        self.register_buffer("opacity", torch.zeros(resolution**3))
+        self.register_buffer("occupied", torch.ones(resolution**3, dtype=torch.bool))
+
+    def is_occupied(self, x_unit: Tensor) -> Tensor:
+        """(N, 3) unit-cube points -> (N,) bool; points outside the cube are empty."""
+        idx, inside = cells_of(x_unit, self.resolution)
+        return self.occupied[idx] & inside
+
+    @torch.no_grad()
+    def update(
+        self,
+        density_fn: Callable[[Tensor], Tensor],
+        step: float,
+        warmup: bool,
+        decay: float = 0.95,
+        threshold: float = 0.01,
+        fraction: float = 0.25,
+        generator: torch.Generator | None = None,
+        chunk: int = 1 << 16,
+    ) -> None:
+        """One EMA update: opacity 1 - exp(-sigma dt) at a jittered point of each chosen cell.
+
+        density_fn: unit-cube points (M, 3) -> sigma (M,). During warm-up every cell is
+        evaluated and all cells stay occupied; afterwards a random `fraction` of all cells plus
+        all currently occupied cells (re-checking what we march through most).
+        """
+        n = self.resolution**3
+        dev = self.opacity.device
+        if warmup:
+            cells = torch.arange(n, device=dev)
+        else:
+            k = max(1, math.ceil(fraction * n))
+            rand = torch.randint(0, n, (k,), device=dev, generator=generator)
+            cells = torch.unique(torch.cat([rand, self.occupied.nonzero()[:, 0]]))
+        u = torch.rand((len(cells), 3), device=dev, generator=generator)
+        x = cell_points(cells, self.resolution, u)
+        sigma = torch.cat([density_fn(c) for c in x.split(chunk)])
+        alpha = -torch.expm1(-sigma.float().clamp_min(0.0) * step)
+        self.opacity[cells] = torch.maximum(self.opacity[cells] * decay, alpha)
+        if warmup:
+            self.occupied.fill_(True)
+        else:
+            thr = min(threshold, self.opacity.mean().item())
+            self.occupied.copy_(self.opacity > thr)
+
+    def occupancy_fraction(self) -> float:
+        return self.occupied.float().mean().item()
+
+    def sample(
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        t_min: Tensor,
+        t_max: Tensor,
+        to_unit: Callable[[Tensor], Tensor],
+        step: float,
+        cone_angle: float = 0.0,
+        u: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """March rays (R,) from t_min to t_max and keep the intervals whose midpoint, mapped by
+        `to_unit` (world (N, 3) -> unit cube), is in an occupied cell.
+        Returns packed ray_indices (N,), t_starts (N,), t_ends (N,)."""
+        ray_indices, starts, ends = march_intervals(t_min, t_max, step, cone_angle, u)
+        mids = 0.5 * (starts + ends)
+        x = origins[ray_indices] + mids[:, None] * directions[ray_indices]
+        keep = self.is_occupied(to_unit(x))
+        return ray_indices[keep], starts[keep], ends[keep]
