@@ -12,7 +12,7 @@ from recon.train.config import TrainConfig, field_help
 from recon.train.stage import import_methods, train
 from recon.workspace import Workspace
 
-METHOD_NAMES = sorted(import_methods())
+METHOD_NAMES = ["nerf", "ngp", "plenoxel", "3dgs"]  # imported lazily: `recon --help` stays fast
 
 
 def _list_options(method: str) -> str:
@@ -56,6 +56,8 @@ def command(workspace, method, run, preset, steps, time_budget, patience, eval_e
     Without --steps, --time-budget or --patience the method's own step count applies.
     Ctrl-C saves a checkpoint; `--resume` continues from it.
     """
+    if method not in import_methods():
+        raise click.UsageError(f"method {method} is not part of this build")
     if list_options:
         click.echo(_list_options(method))
         return

@@ -70,7 +70,8 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
     has_alpha = first.shape[-1] == 4
     bg_name = cfg.background if cfg.background != "auto" else "white"
     background = np.array(BACKGROUNDS[bg_name], dtype=np.float32)
-    per_split = len({f.split for f in posed.frames}) > 1 and any(f.split == "val" for f in posed.frames)
+    # one folder per split when names repeat across splits (Blender: train/r_0 and test/r_0)
+    per_split = len({f.name for f in posed.frames}) < len(posed.frames)
     records, Ks, sizes = [], [], []
     for i, frame in enumerate(posed.frames):
         img, K, _ = prepare_image(frame, cfg, background)

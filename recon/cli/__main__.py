@@ -1,0 +1,3 @@
+from recon.cli.main import main
+
+main()

@@ -1,0 +1,55 @@
+"""Shared fixtures: paths to the real data beside the repo, and small synthetic datasets."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+SAMPLE_DATA = REPO / "sample_data"
+
+
+def recon_cli(*args: str, check: bool = True, timeout: float = 600, env=None) -> subprocess.CompletedProcess:
+    """Run the real `recon` command in a subprocess (as a user or CI would)."""
+    full_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
+    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args], capture_output=True, text=True,
+                          timeout=timeout, env=full_env, cwd=REPO)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"recon {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def make_blender_dataset(root: Path, n_train: int = 4, n_test: int = 2, size: int = 16) -> Path:
+    """A tiny Blender-style dataset: RGBA PNGs + transforms_{train,test}.json (OpenGL c2w)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    for split, n in (("train", n_train), ("test", n_test)):
+        (root / split).mkdir(parents=True, exist_ok=True)
+        frames = []
+        for i in range(n):
+            img = (rng.random((size, size, 4)) * 255).astype(np.uint8)
+            cv2.imwrite(str(root / split / f"r_{i}.png"), img)
+            ang = 2 * np.pi * i / n + (0.3 if split == "test" else 0)
+            eye = np.array([4 * np.cos(ang), 4 * np.sin(ang), 2.0])
+            fwd = -eye / np.linalg.norm(eye)  # looking at the origin
+            right = np.cross(fwd, [0, 0, 1.0])
+            right /= np.linalg.norm(right)
+            up = np.cross(right, fwd)
+            c2w = np.eye(4)
+            c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -fwd, eye  # OpenGL axes
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": frames}))
+    return root
+
+
+@pytest.fixture
+def blender_dataset(tmp_path) -> Path:
+    return make_blender_dataset(tmp_path / "blender")

@@ -1,0 +1,88 @@
+import numpy as np
+import pytest
+import torch
+
+from recon.cameras import Cameras, camera_rays, project_points, unproject_pixels
+from recon.cameras.cameras import intrinsics_matrix, invert_rigid
+from recon.cameras.conventions import (opencv_c2w_from_opengl_c2w, opengl_c2w_from_opencv_c2w,
+                                       quat_wxyz_from_rotation, quat_wxyz_from_xyzw,
+                                       quat_xyzw_from_wxyz, rotation_from_quat_wxyz)
+
+
+def K_problem1():
+    return intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (800.0, 800.0, 320.0, 240.0)))
+
+
+def test_seed_problem1_projection_exact():
+    K = K_problem1()
+    uv4, z4 = project_points(torch.tensor([0.5, -0.3, 4.0], dtype=torch.float64), K)
+    uv8, _ = project_points(torch.tensor([0.5, -0.3, 8.0], dtype=torch.float64), K)
+    assert uv4.tolist() == [420.0, 180.0] and z4.item() == 4.0
+    assert uv8.tolist() == [370.0, 210.0]
+    assert torch.linalg.norm(uv4 - uv8).item() == pytest.approx(58.3095, abs=1e-4)  # sqrt(3400)
+
+
+def test_project_unproject_round_trip_batched():
+    g = torch.Generator().manual_seed(0)
+    K = intrinsics_matrix(*(torch.rand(5, generator=g, dtype=torch.float64) * 500 + 100 for _ in range(4)))
+    pts = torch.randn(5, 7, 3, generator=g, dtype=torch.float64)
+    pts[..., 2] = pts[..., 2].abs() + 0.5
+    uv, z = project_points(pts, K[:, None])
+    back = unproject_pixels(uv, z, K[:, None])
+    assert torch.allclose(back, pts, atol=1e-10)
+
+
+def test_rays_pass_through_pixel_centres():
+    K = K_problem1()
+    w2c = torch.eye(4, dtype=torch.float64)
+    w2c[:3, 3] = torch.tensor([0.1, 0.2, 0.3])
+    cams = Cameras(K[None], invert_rigid(w2c)[None], torch.tensor([640]), torch.tensor([480]))
+    o, d, z_per_t = camera_rays(cams, 0)
+    assert o.shape == (480, 640, 3) and torch.allclose(d.norm(dim=-1), torch.ones(480, 640, dtype=torch.float64))
+    # a point along the ray of pixel (row 180, col 420) projects to its centre (420.5, 180.5)
+    t = 3.0
+    p_world = o[180, 420] + t * d[180, 420]
+    p_cam = p_world - w2c[:3, 3]
+    uv, depth = project_points(p_cam, K)
+    assert torch.allclose(uv, torch.tensor([420.5, 180.5], dtype=torch.float64), atol=1e-9)
+    assert depth.item() == pytest.approx(t * z_per_t[180, 420].item())
+
+
+def test_opengl_opencv_conversion():
+    rng = np.random.default_rng(1)
+    R = rotation_from_quat_wxyz(rng.normal(size=4))
+    c2w_gl = np.eye(4)
+    c2w_gl[:3, :3], c2w_gl[:3, 3] = R, rng.normal(size=3)
+    c2w_cv = opencv_c2w_from_opengl_c2w(c2w_gl)
+    # OpenGL looks down -z, OpenCV down +z: same optical axis, y flipped
+    assert np.allclose(c2w_cv[:3, 2], -c2w_gl[:3, 2]) and np.allclose(c2w_cv[:3, 1], -c2w_gl[:3, 1])
+    assert np.allclose(c2w_cv[:3, 3], c2w_gl[:3, 3])
+    assert np.allclose(opengl_c2w_from_opencv_c2w(c2w_cv), c2w_gl)
+
+
+def test_quaternion_conversions_match_pycolmap_xyzw():
+    import zlib  # noqa: F401  (before pycolmap, see recon/__init__.py)
+
+    import pycolmap
+
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        R = rotation_from_quat_wxyz(q)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+        q_back = quat_wxyz_from_rotation(R)
+        assert np.allclose(q_back, q * np.sign(q[0]), atol=1e-10)
+        rot = pycolmap.Rotation3d(quat_xyzw_from_wxyz(q))
+        assert np.allclose(rot.matrix(), R, atol=1e-10)
+        assert np.allclose(quat_wxyz_from_xyzw(np.asarray(rot.quat)) * np.sign(rot.quat[3]), q * np.sign(q[0]))
+
+
+def test_cameras_scaled_keeps_pixel_edges():
+    K = K_problem1()[None].float()
+    cams = Cameras(K, torch.eye(4)[None], torch.tensor([640]), torch.tensor([480]))
+    half = cams.scaled(0.5)
+    assert half.width.item() == 320 and half.height.item() == 240
+    # the image centre (pixel edge coordinates) maps to the centre
+    uv, _ = project_points(torch.tensor([0.0, 0.0, 1.0]), half.K[0])
+    assert uv.tolist() == [160.0, 120.0]
