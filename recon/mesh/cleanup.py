@@ -1,0 +1,88 @@
+"""Mesh post-processing: drop floaters (small connected components), report counts, map a
+mesh from the normalized scene box back to original units, write PLY / OBJ / GLB."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from recon.workspace.atomic import atomic_path
+
+MESH_FORMATS = (".ply", ".obj", ".glb")
+
+
+def component_labels(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(F,) label of the edge-connected component of each face, 0 = the most faces."""
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, len(mesh.faces))
+    counts = np.bincount(labels)
+    rank = np.empty_like(counts)
+    rank[np.argsort(-counts, kind="stable")] = np.arange(len(counts))
+    return rank[labels]
+
+
+def _keep_faces(mesh: trimesh.Trimesh, keep: np.ndarray) -> trimesh.Trimesh:
+    out = mesh.copy()
+    out.update_faces(keep)
+    out.remove_unreferenced_vertices()
+    return out
+
+
+def keep_largest_components(mesh: trimesh.Trimesh, n: int = 1) -> trimesh.Trimesh:
+    """The n components with the most faces (the scene, without floaters)."""
+    if len(mesh.faces) == 0:
+        return mesh.copy()
+    return _keep_faces(mesh, component_labels(mesh) < n)
+
+
+def remove_small_components(mesh: trimesh.Trimesh, min_face_fraction: float = 0.01) -> trimesh.Trimesh:
+    """Drop components with fewer than min_face_fraction of all faces (the largest is kept)."""
+    if len(mesh.faces) == 0:
+        return mesh.copy()
+    labels = component_labels(mesh)
+    counts = np.bincount(labels)
+    big = counts >= min_face_fraction * len(mesh.faces)
+    big[0] = True
+    return _keep_faces(mesh, big[labels])
+
+
+def mesh_stats(mesh: trimesh.Trimesh) -> dict:
+    """Vertex / face / component counts, watertightness, area (and volume when closed)."""
+    n_components = int(component_labels(mesh).max() + 1) if len(mesh.faces) else 0
+    stats = {
+        "vertices": int(len(mesh.vertices)),
+        "faces": int(len(mesh.faces)),
+        "components": n_components,
+        "watertight": bool(mesh.is_watertight) if len(mesh.faces) else False,
+        "area": float(mesh.area),
+    }
+    if stats["watertight"]:
+        stats["volume"] = float(mesh.volume)
+    return stats
+
+
+def transform_mesh(
+    mesh: trimesh.Trimesh, scale: float, rotation: np.ndarray, translation: np.ndarray
+) -> trimesh.Trimesh:
+    """x_orig = s R x + t for every vertex (normalized scene -> original units).
+
+    Requires s > 0 and R a proper rotation, so face winding (outward normals) is preserved.
+    Example: s = 2, R = I, t = (1, 0, 0) maps the vertex (1, 1, 1) to (3, 2, 2).
+    """
+    R = np.asarray(rotation, np.float64)
+    if scale <= 0 or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError("transform_mesh: need scale > 0 and a proper rotation matrix")
+    out = mesh.copy()
+    out.vertices = scale * np.asarray(mesh.vertices, np.float64) @ R.T + np.asarray(translation)
+    return out
+
+
+def write_mesh(mesh: trimesh.Trimesh, path: Path) -> Path:
+    """Write PLY (binary), OBJ or GLB by suffix, atomically; vertex colours included."""
+    path = Path(path)
+    if path.suffix.lower() not in MESH_FORMATS:
+        raise ValueError(f"write_mesh: unsupported format {path.suffix!r}, use one of {MESH_FORMATS}")
+    with atomic_path(path) as tmp:
+        mesh.export(tmp)
+    return path

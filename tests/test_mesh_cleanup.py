@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from recon.mesh.cleanup import (
+    keep_largest_components,
+    mesh_stats,
+    remove_small_components,
+    transform_mesh,
+    write_mesh,
+)
+
+
+def _scene_with_floaters() -> trimesh.Trimesh:
+    """A big sphere (1280 faces), a medium one (320) and a tiny tetrahedron (4), coloured."""
+    big = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    medium = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    medium.apply_translation([3, 0, 0])
+    tiny = trimesh.creation.icosphere(subdivisions=0, radius=0.05)
+    tiny.apply_translation([0, 3, 0])
+    tiny = trimesh.Trimesh(tiny.vertices, tiny.faces[:4])
+    mesh = trimesh.util.concatenate([tiny, big, medium])  # the big one is not first
+    mesh.visual.vertex_colors = np.tile([10, 20, 30, 255], (len(mesh.vertices), 1))
+    return mesh
+
+
+def test_stats_counts_components():
+    stats = mesh_stats(_scene_with_floaters())
+    assert stats["components"] == 3 and stats["faces"] == 1280 + 320 + 4
+    assert not stats["watertight"]  # the open tetrahedron fragment
+
+
+def test_keep_largest_components():
+    mesh = _scene_with_floaters()
+    one = keep_largest_components(mesh, 1)
+    assert len(one.faces) == 1280 and one.is_watertight
+    assert np.linalg.norm(one.vertices, axis=1).max() == pytest.approx(1.0)
+    assert (one.visual.vertex_colors[:, :3] == [10, 20, 30]).all()
+    assert len(keep_largest_components(mesh, 2).faces) == 1600
+
+
+@pytest.mark.parametrize("fraction, faces", [(0.001, 1604), (0.01, 1600), (0.5, 1280), (0.9, 1280)])
+def test_remove_small_components(fraction, faces):
+    assert len(remove_small_components(_scene_with_floaters(), fraction).faces) == faces
+
+
+def test_transform_worked_example_and_orientation():
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    R = Rotation.from_euler("xyz", [0.3, -0.7, 1.1]).as_matrix()
+    out = transform_mesh(mesh, 2.0, R, np.array([1.0, -2.0, 0.5]))
+    expected = 2.0 * mesh.vertices @ R.T + [1.0, -2.0, 0.5]
+    np.testing.assert_allclose(out.vertices, expected, atol=1e-12)
+    point = transform_mesh(trimesh.Trimesh([[1.0, 1, 1]], []), 2.0, np.eye(3), [1.0, 0, 0])
+    np.testing.assert_allclose(point.vertices, [[3.0, 2, 2]])
+    assert out.volume == pytest.approx(8 * mesh.volume)  # positive: still outward
+    with pytest.raises(ValueError):
+        transform_mesh(mesh, 1.0, np.diag([1.0, 1, -1]), np.zeros(3))
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".glb"])
+def test_write_roundtrip(tmp_path, suffix):
+    mesh = keep_largest_components(_scene_with_floaters())
+    path = write_mesh(mesh, tmp_path / "out" / f"mesh{suffix}")
+    loaded = trimesh.load(path, force="mesh", process=False)
+    assert len(loaded.faces) == len(mesh.faces)
+    np.testing.assert_allclose(np.sort(loaded.vertices, axis=0), np.sort(mesh.vertices, axis=0),
+                               atol=1e-5)
+    assert (loaded.visual.vertex_colors[:, :3] == [10, 20, 30]).all()
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temp file left
+
+
+def test_write_rejects_unknown_format(tmp_path):
+    with pytest.raises(ValueError):
+        write_mesh(trimesh.creation.box(), tmp_path / "mesh.stl")
