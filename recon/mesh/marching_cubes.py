@@ -44,7 +44,11 @@ def grid_shape(aabb, resolution: int) -> tuple[tuple[int, int, int], float]:
 
 
 def evaluate_grid(
-    fn: Field, origin, spacing: float, shape: tuple[int, int, int], chunk: int = 1 << 18,
+    fn: Field,
+    origin,
+    spacing: float,
+    shape: tuple[int, int, int],
+    chunk: int = 1 << 18,
     device: str | torch.device = "cpu",
 ) -> np.ndarray:
     """fn at origin + h (i, j, k) for all grid indices, evaluated in chunks -> (X, Y, Z) float32.
@@ -89,8 +93,9 @@ def mesh_from_grid(
     return mesh
 
 
-def vertex_colors(color_fn: Field, vertices: np.ndarray, chunk: int = 1 << 16,
-                  device: str | torch.device = "cpu") -> np.ndarray:
+def vertex_colors(
+    color_fn: Field, vertices: np.ndarray, chunk: int = 1 << 16, device: str | torch.device = "cpu"
+) -> np.ndarray:
     """color_fn (N, 3) -> (N, 3) in [0, 1] at the vertices, chunked -> (N, 4) uint8 RGBA."""
     points = torch.as_tensor(vertices, dtype=torch.float32, device=device)
     rgb = np.empty((len(points), 3), np.float32)

@@ -109,7 +109,10 @@ def project_tsdf(
 
 
 def integrate(
-    volume: TSDFVolume, cameras: Cameras, depths: Tensor, rgbs: Tensor | None = None,
+    volume: TSDFVolume,
+    cameras: Cameras,
+    depths: Tensor,
+    rgbs: Tensor | None = None,
     chunk: int = TSDFConfig.chunk,
 ) -> TSDFVolume:
     """Fuse C views (depths (C, H, W), rgbs (C, H, W, 3) or None) into `volume`, in place.
@@ -128,8 +131,9 @@ def integrate(
     for start in range(0, tsdf.numel(), step):
         sl = slice(start, min(start + step, tsdf.numel()))  # views into the grid: updates in place
         index = torch.arange(sl.start, sl.stop, device=device)
-        s_t, s_w, s_c, s_v = project_tsdf(volume.points(index), cameras, depths, rgbs,
-                                          volume.truncation)
+        s_t, s_w, s_c, s_v = project_tsdf(
+            volume.points(index), cameras, depths, rgbs, volume.truncation
+        )
         _running_average(tsdf[sl], weight[sl], s_t, s_w)
         _running_average(color[sl], color_weight[sl], s_c, s_v)
     return volume
@@ -173,8 +177,9 @@ def tsdf_mesh(volume: TSDFVolume, with_colors: bool = True) -> trimesh.Trimesh:
     for di in (0, 1):
         for dj in (0, 1):
             for dk in (0, 1):
-                valid &= observed[di : di + valid.shape[0], dj : dj + valid.shape[1],
-                                  dk : dk + valid.shape[2]]
+                valid &= observed[
+                    di : di + valid.shape[0], dj : dj + valid.shape[1], dk : dk + valid.shape[2]
+                ]
     # inside (behind the surface) is tsdf < 0, so -tsdf > 0 is the "inside greater" convention
     values = -volume.tsdf.cpu().numpy()
     mesh = mesh_from_grid(values, volume.origin.cpu().numpy(), volume.voxel_size, 0.0, valid)

@@ -51,8 +51,13 @@ def ssim(pred, target, max_val: float = 1.0) -> Tensor:
     x = pred.to(dtype).reshape(-1, *pred.shape[-3:]).permute(0, 3, 1, 2)  # (B, 3, H, W)
     y = target.to(dtype).reshape(-1, *target.shape[-3:]).permute(0, 3, 1, 2)
     value = pytorch_msssim.ssim(
-        x, y, data_range=max_val, size_average=False, win_size=SSIM_WINDOW,
-        win_sigma=SSIM_SIGMA, K=(0.01, 0.03),
+        x,
+        y,
+        data_range=max_val,
+        size_average=False,
+        win_size=SSIM_WINDOW,
+        win_sigma=SSIM_SIGMA,
+        K=(0.01, 0.03),
     )
     return value.reshape(batch)
 

