@@ -19,7 +19,7 @@ import torch
 import trimesh
 from torch import Tensor
 
-from recon.cameras import Cameras, project_points
+from recon.cameras import Cameras
 from recon.mesh.marching_cubes import grid_shape, mesh_from_grid
 
 
@@ -87,16 +87,19 @@ def project_tsdf(
     sum_c v_c rgb_c (N, 3), sum_c v_c (N,) with v_c = w_c [|sdf_c| < trunc].
     """
     C, H, W = depths.shape
-    R, t = cameras.cam_from_world[:, :3, :3], cameras.cam_from_world[:, :3, 3]
-    points_in_cam = torch.einsum("cij,nj->cni", R, points) + t[:, None, :]  # (C, N, 3)
-    uv, z = project_points(points_in_cam, cameras.K[:, None])  # (C, N, 2), (C, N)
-    col, row = torch.floor(uv[..., 0]), torch.floor(uv[..., 1])  # pixel containing the point
-    inside = (z > 0) & (col >= 0) & (row >= 0)
-    inside &= (col < cameras.width[:, None]) & (row < cameras.height[:, None])
-    flat = (row.clamp(0, H - 1) * W + col.clamp(0, W - 1)).long()  # (C, N)
-    depth = depths.reshape(C, H * W).gather(1, flat)
+    depths = torch.where(torch.isfinite(depths) & (depths > 0), depths, torch.nan)
+    # K [R | t] folded into one (C, 3, 4) matrix: a single batched product on the hot path
+    P = cameras.K @ cameras.cam_from_world[:, :3, :]
+    hom = torch.einsum("cij,nj->cni", P[:, :, :3], points) + P[:, None, :, 3]  # (C, N, 3)
+    z = hom[..., 2]
+    u, v = hom[..., 0] / z, hom[..., 1] / z
+    inside = (z > 0) & (u >= 0) & (v >= 0)  # NaN (a voxel at a camera centre) fails these
+    inside &= (u < cameras.width[:, None]) & (v < cameras.height[:, None])
+    u, v = torch.where(inside, u, 0.0), torch.where(inside, v, 0.0)
+    flat = v.long().clamp(max=H - 1) * W + u.long().clamp(max=W - 1)  # pixel containing (u, v)
+    depth = depths.reshape(C, H * W).gather(1, flat)  # (C, N), NaN where no valid depth
     sdf = depth - z
-    observed = inside & torch.isfinite(depth) & (depth > 0) & (sdf >= -truncation)
+    observed = inside & (sdf >= -truncation)
     w = observed.to(points.dtype)
     tsdf = torch.where(observed, (sdf / truncation).clamp(max=1.0), 0.0)
     near = observed & (sdf.abs() < truncation)
