@@ -105,6 +105,8 @@ def lpips(pred, target, model: LPIPS | None = None) -> Tensor | None:
     """LPIPS distance of (..., H, W, 3) images in [0, 1] -> (...,); None if unavailable.
 
     Identical images give 0; larger is more different. H, W >= 31. Differentiable in pred.
+    Pass `model` (from `load_lpips`) when calling repeatedly: without it the weights are
+    read from the cache on every call.
     """
     model = model if model is not None else load_lpips()
     if model is None:
