@@ -77,11 +77,13 @@ def conic_from_cov2d(cov2d: Tensor) -> tuple[Tensor, Tensor]:
     (no overflow/underflow of ac or b^2); non-positive or non-finite determinants are invalid
     and get a zero conic.
     """
-    a, b, c = cov2d.unbind(-1)
+    finite = torch.isfinite(cov2d).all(-1, keepdim=True)
+    # Non-finite rows are swapped for I before any arithmetic so no NaN reaches the gradients.
+    a, b, c = torch.where(finite, cov2d, cov2d.new_tensor([1.0, 0.0, 1.0])).unbind(-1)
     s = (0.5 * (a + c)).abs().clamp_min(torch.finfo(cov2d.dtype).tiny)
     an, bn, cn = a / s, b / s, c / s
     det_n = an * cn - bn * bn
-    valid = (det_n > 0) & torch.isfinite(det_n)
+    valid = (det_n > 0) & torch.isfinite(det_n) & finite[..., 0]
     inv = torch.where(valid, 1.0 / (det_n.where(valid, torch.ones_like(det_n)) * s),
                       torch.zeros_like(det_n))
     return torch.stack([cn * inv, -bn * inv, an * inv], -1), valid

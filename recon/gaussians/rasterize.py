@@ -17,6 +17,7 @@ speed, not results). Backward gradients go to one buffer per thread chunk, reduc
 from __future__ import annotations
 
 import math
+import os
 
 import numba
 import numpy as np
@@ -25,6 +26,13 @@ from numba import prange
 from torch import Tensor
 
 from recon.gaussians.tiles import TILE, bin_gaussians, tile_bounds
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # numba's OpenMP layer loads the system libgomp, torch ships its own: two OpenMP runtimes
+    # whose idle threads spin against each other on a 2-core box (measured 10-20x slowdowns of
+    # interleaved torch/numba work). The workqueue layer's threads sleep instead. Takes effect
+    # only if no numba parallel region has run yet in this process.
+    numba.config.THREADING_LAYER = "workqueue"
 
 ALPHA_MAX = 0.99  # keeps 1 - alpha away from 0 so the backward can divide by it
 ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped

@@ -1,0 +1,228 @@
+"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023; seed, "3D Gaussian
+Splatting"), its flat config and presets, registered at import.
+
+A training step renders one full training view (shuffled epoch order), takes
+loss = (1 - lambda) L1 + lambda (1 - SSIM), runs fused Adam with the reference's per-attribute
+learning rates (means scaled by the camera extent, decayed exponentially), and lets
+`densify.post_step` clone, split, prune and reset.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import pytorch_msssim
+import torch
+from torch import Tensor, nn
+
+from recon.cameras import Cameras
+from recon.gaussians import densify
+from recon.gaussians.init import initial_gaussians
+from recon.gaussians.optim import make_adam, set_lr
+from recon.gaussians.ply import write_splat_ply
+from recon.gaussians.render import composite_rgb, composite_rgbd, project_splats
+from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
+
+
+@dataclass(frozen=True)
+class GaussiansConfig:
+    """3D Gaussian splatting. Defaults are the reference's (the "paper" preset); "fast" rescales
+    the schedules to a CPU run of a few thousand steps."""
+
+    init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
+    init_points: int = 100_000  # random initial Gaussians in the scene box
+    init_opacity: float = 0.1  # initial opacity of every Gaussian
+    sh_degree: int = 3  # largest SH degree of the colours
+    sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
+    near_plane: float = 0.01  # Gaussians with camera z <= this are culled
+    ssim_weight: float = 0.2  # lambda in (1 - lambda) L1 + lambda (1 - SSIM)
+    lr_means: float = 0.00016  # means lr at step 0, times the camera extent
+    lr_means_final: float = 0.0000016  # means lr after lr_decay_steps, times the camera extent
+    lr_decay_steps: int = 30_000  # steps of the exponential decay of the means lr
+    lr_sh_dc: float = 0.0025  # lr of the degree-0 SH coefficients
+    lr_sh_rest: float = 0.000125  # lr of the degree 1-3 SH coefficients (dc / 20)
+    lr_opacity: float = 0.05  # lr of the opacity logits
+    lr_scales: float = 0.005  # lr of the log-scales
+    lr_quats: float = 0.001  # lr of the quaternions
+    densify_grad_threshold: float = 0.0002  # mean NDC 2D-mean gradient that triggers densify
+    densify_dense_fraction: float = 0.01  # clone below this x extent (max scale), split above
+    densify_start: int = 500  # first densification step
+    densify_stop: int = 15_000  # no densification or opacity reset from this step
+    densify_interval: int = 100  # steps between densifications
+    opacity_reset_interval: int = 3000  # steps between opacity resets
+    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
+    prune_screen_fraction: float = 0.15  # prune if screen radius > this x image size (after a reset)
+    prune_world_fraction: float = 0.1  # prune if max scale > this x extent (after a reset)
+    max_gaussians: int = 3_000_000  # densification stops growing the count here
+    seed: int = 0  # seeds random init, view order and split sampling
+
+
+PRESETS = {
+    "paper": {},
+    "fast": {
+        "init_points": 20_000, "sh_degree_interval": 500, "lr_decay_steps": 5000,
+        "densify_start": 100, "densify_stop": 2000, "densify_interval": 100,
+        "opacity_reset_interval": 1000, "max_gaussians": 200_000,
+    },
+}
+
+
+def photometric_loss(rgb: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
+    """(1 - lambda) |rgb - target|_1 + lambda (1 - SSIM(rgb, target)), SSIM with the 11x11
+    Gaussian window, sigma 1.5 (pytorch_msssim: separable, valid windows). (H, W, 3) -> ()."""
+    l1 = (rgb - target).abs().mean()
+    if ssim_weight == 0:
+        return l1
+    x, y = rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
+    ssim = pytorch_msssim.ssim(x, y, data_range=1.0, size_average=True)
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
+
+
+def camera_extent(cameras: Cameras) -> float:
+    """1.1 x the largest distance of a camera centre from their mean (the reference's
+    `cameras_extent`); 1 for a single camera."""
+    centers = cameras.centers.double()
+    radius = (centers - centers.mean(0)).norm(dim=-1).max().item()
+    return 1.1 * radius if radius > 1e-9 else 1.0
+
+
+def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
+    """Log-linear decay lr_means -> lr_means_final over lr_decay_steps, times the extent."""
+    t = min(max(step / max(config.lr_decay_steps, 1), 0.0), 1.0)
+    return extent * math.exp((1 - t) * math.log(config.lr_means) + t * math.log(config.lr_means_final))
+
+
+def view_for_step(step: int, n_views: int, seed: int) -> int:
+    """Shuffled epochs: a fresh permutation of the views every n_views steps, a pure function
+    of (step, seed) so resumed runs visit the same views."""
+    gen = torch.Generator().manual_seed(seed * 1_000_003 + step // n_views)
+    return int(torch.randperm(n_views, generator=gen)[step % n_views])
+
+
+def densify_strategy(config: GaussiansConfig) -> densify.DensifyStrategy:
+    return densify.DensifyStrategy(
+        grad_threshold=config.densify_grad_threshold, dense_fraction=config.densify_dense_fraction,
+        prune_opacity=config.prune_opacity, prune_screen_fraction=config.prune_screen_fraction,
+        prune_world_fraction=config.prune_world_fraction, start=config.densify_start,
+        stop=config.densify_stop, interval=config.densify_interval,
+        reset_interval=config.opacity_reset_interval, max_gaussians=config.max_gaussians)
+
+
+class GaussianModel(Model):
+    """G Gaussians as an `nn.ParameterDict` of (G, ...) tensors: means, quats (w, x, y, z),
+    log_scales, opacity_logits, sh_dc (G, 1, 3), sh_rest (G, (degree+1)^2 - 1, 3)."""
+
+    def __init__(self, config: GaussiansConfig, scene: SceneInfo):
+        super().__init__()
+        self.config = config
+        self.strategy = densify_strategy(config)
+        self.register_buffer("background", scene.background.float().clone())
+        self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
+        self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
+        self.params = nn.ParameterDict(
+            {k: nn.Parameter(v) for k, v in initial_gaussians(config, scene).items()})
+        self._reset_training_state()
+
+    def _reset_training_state(self) -> None:
+        c = self.config
+        lrs = {"means": c.lr_means, "quats": c.lr_quats, "log_scales": c.lr_scales,
+               "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
+        self.optimizer = make_adam(self.params, lrs)
+        self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.params["means"].shape[0]
+
+    def gaussians(self, sh_degree: int) -> dict[str, Tensor]:
+        """The attribute tensors `render.project_splats` takes, SH cut to `sh_degree` (so unused
+        coefficients get no gradient and Adam skips them while the degree is 0)."""
+        p = self.params
+        sh = p["sh_dc"]
+        if sh_degree > 0:
+            sh = torch.cat([sh, p["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
+        return {"means": p["means"], "quats": p["quats"], "log_scales": p["log_scales"],
+                "opacity_logits": p["opacity_logits"], "sh": sh}
+
+    def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+        c = self.config
+        if float(self.scene_extent) == 0.0:
+            self.scene_extent.fill_(camera_extent(data.cameras))
+        extent = float(self.scene_extent)
+        device = self.params["means"].device
+        if self.densify_state["grad2d"].device != device:  # the model was moved after init
+            self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
+        self.active_sh_degree.fill_(min(c.sh_degree, step // max(c.sh_degree_interval, 1)))
+        set_lr(self.optimizer, "means", means_lr(c, step, extent))
+        view = view_for_step(step, len(data), c.seed)
+        splats = project_splats(self.gaussians(int(self.active_sh_degree)), data.cameras[view],
+                                int(self.active_sh_degree), c.near_plane)
+        splats.means2d.retain_grad()
+        rgb, _ = composite_rgb(splats, self.background)
+        target = data.images[view]
+        loss = photometric_loss(rgb, target, c.ssim_weight)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if step + 1 < self.strategy.stop:
+            densify.accumulate(self.densify_state, splats.means2d.grad, splats.radii,
+                               splats.width, splats.height)
+        self.optimizer.step()
+        gen = torch.Generator(device=device).manual_seed(c.seed + 7919 * step)
+        self.densify_state = densify.post_step(self.strategy, self.params, self.optimizer,
+                                               self.densify_state, step, extent, gen)
+        with torch.no_grad():
+            mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
+        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-10)),
+                "num_gaussians": float(self.num_gaussians)}
+
+    @torch.no_grad()
+    def render(self, camera: Cameras) -> dict[str, Tensor]:
+        """rgb (H, W, 3), depth (H, W) = expected z / acc where acc > 0 (else 0), acc (H, W)."""
+        degree = int(self.active_sh_degree)
+        splats = project_splats(self.gaussians(degree), camera.to(self.params["means"].device),
+                                degree, self.config.near_plane)
+        out = composite_rgbd(splats, self.background)
+        acc = out["acc"]
+        depth = torch.where(acc > 0, out["depth"] / acc.clamp_min(1e-10), torch.zeros_like(acc))
+        return {"rgb": out["rgb"], "depth": depth, "acc": acc}
+
+    def training_state(self) -> dict:
+        return {"optimizer": self.optimizer.state_dict(),
+                "densify": {k: v.clone() for k, v in self.densify_state.items()}}
+
+    def load_training_state(self, state: dict) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.densify_state = {k: v.to(self.params["means"].device)
+                              for k, v in state["densify"].items()}
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Resize the Gaussian tensors to the saved count first (densification changes it), then
+        load; the optimizer and accumulators restart for the new tensors (see
+        `load_training_state` to restore them)."""
+        for name, p in self.params.items():
+            saved = state_dict.get(f"params.{name}")
+            if saved is not None and saved.shape != p.shape:
+                self.params[name] = nn.Parameter(p.new_empty(saved.shape))
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._reset_training_state()
+        return result
+
+    def stats(self) -> dict[str, float]:
+        return {"parameters": float(sum(p.numel() for p in self.params.values())),
+                "gaussians": float(self.num_gaussians)}
+
+    @torch.no_grad()
+    def export_ply(self, path) -> None:
+        """Write the Gaussians as an INRIA splat PLY (see `ply.py`)."""
+        p = {k: v.detach().cpu() for k, v in self.params.items()}
+        sh = torch.cat([p["sh_dc"], p["sh_rest"]], 1).numpy()
+        write_splat_ply(path, p["means"].numpy(), p["quats"].numpy(), p["log_scales"].numpy(),
+                        p["opacity_logits"].numpy(), sh)
+
+
+def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
+    return GaussianModel(config, scene)
+
+
+SPEC = register(MethodSpec(name="3dgs", config_cls=GaussiansConfig, build=build, presets=PRESETS))

@@ -1,0 +1,68 @@
+"""One camera's view of a set of Gaussians: projection + SH colour + tile rasterization, giving
+rgb over a background, expected z-depth and accumulated opacity.
+
+`gaussians` is any mapping with the model's attribute tensors: means (G, 3), quats (G, 4),
+log_scales (G, 3), opacity_logits (G,), sh (G, K, 3) with K >= (degree + 1)^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import torch
+from torch import Tensor
+
+from recon.cameras import Cameras
+from recon.gaussians.projection import project_gaussians, sh_colors
+from recon.gaussians.rasterize import rasterize_features
+
+
+@dataclass
+class ProjectedSplats:
+    """Gaussians in one camera. means2d (G, 2) px, conics (G, 3), depths (G,) camera z,
+    radii (G,) (0 = culled), opacities (G,) in [0, 1], colors (G, 3); width, height in px."""
+
+    means2d: Tensor
+    conics: Tensor
+    depths: Tensor
+    radii: Tensor
+    opacities: Tensor
+    colors: Tensor
+    width: int
+    height: int
+
+
+def project_splats(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int,
+                   near: float = 0.01) -> ProjectedSplats:
+    """Project G Gaussians into the single camera `camera` (len 1), colours from SH of
+    `sh_degree` seen from its centre, opacity = sigmoid(logit)."""
+    dtype = gaussians["means"].dtype
+    K, cam_from_world = camera.K[0].to(dtype), camera.cam_from_world[0].to(dtype)
+    W, H = int(camera.width[0]), int(camera.height[0])
+    means2d, conics, depths, radii = project_gaussians(
+        gaussians["means"], gaussians["quats"], gaussians["log_scales"], K, cam_from_world, W, H,
+        near)
+    center = camera.centers[0].to(dtype)
+    colors = sh_colors(gaussians["means"], gaussians["sh"], sh_degree, center)
+    return ProjectedSplats(means2d, conics, depths, radii,
+                           torch.sigmoid(gaussians["opacity_logits"]), colors, W, H)
+
+
+def composite_rgb(splats: ProjectedSplats, background: Tensor) -> tuple[Tensor, Tensor]:
+    """rgb = sum_i T_i alpha_i c_i + T_final bg -> rgb (H, W, 3), acc = 1 - T_final (H, W)."""
+    s = splats
+    image, T = rasterize_features(s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths,
+                                  s.width, s.height)
+    return image + T[..., None] * background.to(image), 1 - T
+
+
+def composite_rgbd(splats: ProjectedSplats, background: Tensor) -> dict[str, Tensor]:
+    """rgb (H, W, 3) over `background`, expected depth sum_i w_i z_i (H, W) (divide by acc for
+    a surface depth), acc (H, W); w_i = T_i alpha_i. Depth rides along as a 4th channel."""
+    s = splats
+    features = torch.cat([s.colors, s.depths[:, None]], -1)
+    image, T = rasterize_features(s.means2d, s.conics, s.opacities, features, s.radii, s.depths,
+                                  s.width, s.height)
+    rgb = image[..., :3] + T[..., None] * background.to(image)
+    return {"rgb": rgb, "depth": image[..., 3], "acc": 1 - T}
