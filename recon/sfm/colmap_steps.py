@@ -1,0 +1,251 @@
+"""The COLMAP phases one by one, over pycolmap 4.x: feature extraction, pair selection and
+matching, mapping, undistortion. Each phase is split into chunks only to report progress.
+
+`colmap_sfm.run_sfm` strings these together; nothing here knows about attempts or reports.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import shutil
+import zlib  # noqa: F401  (before pycolmap: importing pycolmap first corrupts zlib's heap)
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pycolmap
+
+Progress = Callable[[str, int, int], None]
+
+# SIFT peak threshold COLMAP uses by default (0.02 / octave_resolution).
+DEFAULT_PEAK_THRESHOLD = 0.02 / 3
+EXTRACTION_CHUNK = 8  # images per extract_features call: progress granularity vs. thread start-up
+MATCHING_CHUNK = 150  # image pairs per match_image_pairs call
+
+
+@dataclass(frozen=True)
+class AttemptOptions:
+    """Everything one SfM attempt varies: features, matching, and mapper thresholds."""
+
+    name: str  # short label for the report
+    max_image_size: int  # longer side the SIFT extractor downscales to (keypoints stay full-res)
+    max_num_features: int  # SIFT keypoints kept per image
+    peak_threshold: float  # SIFT DoG peak threshold; lower finds more keypoints in low contrast
+    matcher: str  # "exhaustive" | "sequential" (windowed + quadratic + keyframe loop closure)
+    guided_matching: bool  # re-match with the estimated epipolar geometry (more inliers, slower)
+    min_num_inliers: int  # two-view geometry: inliers for a pair to count as verified
+    min_num_matches: int  # mapper: verified inliers for a pair to be used at all
+    init_min_num_inliers: int  # mapper: inliers the initial pair needs
+    abs_pose_min_num_inliers: int  # mapper: 2D-3D inliers to register a new image
+    abs_pose_min_inlier_ratio: float  # mapper: inlier ratio to register a new image
+
+
+@contextlib.contextmanager
+def glog_level(verbose: bool):
+    """Silence COLMAP's glog INFO/WARNING lines unless verbose; restore the level after."""
+    previous = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if verbose else 2
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
+def natural_key(name: str) -> list:
+    """Sort key in which "img2" < "img10": capture order for sequential matching."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def chunks(items: list, size: int) -> list[list]:
+    return [items[i : i + size] for i in range(0, len(items), size)]
+
+
+def extract_features(
+    database: Path,
+    image_dir: Path,
+    groups: list[list[str]],
+    options: AttemptOptions,
+    camera_model: str,
+    num_threads: int,
+    progress: Progress,
+) -> None:
+    """SIFT keypoints and descriptors for every image into `database`.
+
+    `groups` lists the images that share one camera (one group per image for per-image
+    cameras). The first chunk of a group creates its camera; later chunks reuse it through
+    `existing_camera_id`, so calling extract_features per chunk keeps the camera shared.
+    """
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = options.max_image_size
+    extraction.num_threads = num_threads
+    extraction.sift.max_num_features = options.max_num_features
+    extraction.sift.peak_threshold = options.peak_threshold
+    total, done = sum(len(g) for g in groups), 0
+    progress("features", 0, total)
+    for group in groups:
+        camera_id = -1
+        for names in chunks(group, EXTRACTION_CHUNK):
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = camera_model
+            reader.existing_camera_id = camera_id
+            pycolmap.extract_features(
+                database,
+                image_dir,
+                image_names=names,
+                camera_mode=pycolmap.CameraMode.SINGLE,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
+            if camera_id == -1:
+                camera_id = camera_of_image(database, names[0])
+            done += len(names)
+            progress("features", done, total)
+
+
+def camera_of_image(database: Path, name: str) -> int:
+    db = pycolmap.Database.open(database)
+    try:
+        return db.read_image_with_name(name).camera_id
+    finally:
+        db.close()
+
+
+def exhaustive_pairs(names: list[str]) -> list[tuple[str, str]]:
+    """All N (N - 1) / 2 pairs."""
+    return [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
+
+
+def sequential_pairs(
+    names: list[str], overlap: int = 10, num_keyframes: int = 40
+) -> list[tuple[str, str]]:
+    """Pairs for an ordered capture (video, walk-around): each image with its `overlap` next
+    ones, with the ones 2^k further (COLMAP's quadratic overlap), plus all pairs among
+    ~`num_keyframes` evenly spaced keyframes. The keyframe pairs close loops (the end of an
+    orbit meets its start) without the vocabulary tree COLMAP's loop detection needs.
+    """
+    order = sorted(names, key=natural_key)
+    n = len(order)
+    pairs: set[tuple[int, int]] = set()
+    for i in range(n):
+        steps = set(range(1, overlap + 1)) | {2**k for k in range(overlap)}
+        pairs.update((i, i + s) for s in steps if i + s < n)
+    stride = max(1, n // num_keyframes)
+    keyframes = list(range(0, n, stride))
+    pairs.update((a, b) for k, a in enumerate(keyframes) for b in keyframes[k + 1 :])
+    return [(order[a], order[b]) for a, b in sorted(pairs)]
+
+
+def two_view_options(options: AttemptOptions, seed: int) -> pycolmap.TwoViewGeometryOptions:
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = options.min_num_inliers
+    verification.ransac.random_seed = seed
+    return verification
+
+
+def match_pairs(
+    database: Path,
+    work_dir: Path,
+    pairs: list[tuple[str, str]],
+    options: AttemptOptions,
+    seed: int,
+    num_threads: int,
+    progress: Progress,
+) -> None:
+    """Match descriptors and verify two-view geometry for `pairs`, `MATCHING_CHUNK` at a time.
+
+    Every chunk is one `match_image_pairs` call over a pairs file, which gives progress and
+    lets exhaustive and sequential matching share one code path (pairs already in the
+    database are skipped by COLMAP).
+    """
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = num_threads
+    matching.guided_matching = options.guided_matching
+    verification = two_view_options(options, seed)
+    pairs_file = work_dir / "pairs.txt"
+    progress("matching", 0, len(pairs))
+    done = 0
+    for chunk in chunks(pairs, MATCHING_CHUNK):
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(pairs_file)
+        pycolmap.match_image_pairs(
+            database,
+            matching_options=matching,
+            pairing_options=pairing,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+        done += len(chunk)
+        progress("matching", done, len(pairs))
+    pairs_file.unlink()
+
+
+def incremental_options(
+    options: AttemptOptions, names: list[str], seed: int, num_threads: int
+) -> pycolmap.IncrementalPipelineOptions:
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    pipeline.num_threads = num_threads
+    pipeline.random_seed = seed
+    pipeline.image_names = names
+    pipeline.min_num_matches = options.min_num_matches
+    pipeline.mapper.init_min_num_inliers = options.init_min_num_inliers
+    pipeline.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
+    pipeline.mapper.abs_pose_min_inlier_ratio = options.abs_pose_min_inlier_ratio
+    # Small captures are still worth a model: COLMAP's default refuses models under 10 images.
+    pipeline.min_model_size = min(10, max(2, len(names) // 2))
+    return pipeline
+
+
+def map_images(
+    database: Path,
+    image_dir: Path,
+    output_dir: Path,
+    names: list[str],
+    mapper: str,
+    options: AttemptOptions,
+    seed: int,
+    num_threads: int,
+    progress: Progress,
+) -> dict[int, pycolmap.Reconstruction]:
+    """Incremental (COLMAP) or global (GLOMAP) mapping with bundle adjustment -> models."""
+    output_dir.mkdir(parents=True, exist_ok=True)
+    total = len(names)
+    progress("mapping", 0, total)
+    if mapper == "global":
+        pipeline = pycolmap.GlobalPipelineOptions()
+        pipeline.num_threads = num_threads
+        pipeline.random_seed = seed
+        pipeline.image_names = names
+        pipeline.min_num_matches = options.min_num_matches
+        models = pycolmap.global_mapping(database, image_dir, output_dir, pipeline)
+    else:
+        registered = [0]
+
+        def next_image() -> None:  # called once per newly registered image
+            registered[0] += 1
+            progress("mapping", min(registered[0] + 1, total), total)
+
+        pipeline = incremental_options(options, names, seed, num_threads)
+        models = pycolmap.incremental_mapping(
+            database, image_dir, output_dir, pipeline, next_image_callback=next_image
+        )
+    progress("mapping", total, total)
+    return dict(models)
+
+
+def undistort(
+    model: pycolmap.Reconstruction, image_dir: Path, work_dir: Path, num_threads: int
+) -> Path:
+    """Undistort the registered images to PINHOLE cameras -> work_dir/undistorted
+    (images/ and sparse/; COLMAP also writes stereo/ configs for its dense pipeline)."""
+    model_dir = work_dir / "sparse_best"
+    model_dir.mkdir(parents=True, exist_ok=True)
+    model.write(model_dir)
+    output = work_dir / "undistorted"
+    shutil.rmtree(output, ignore_errors=True)  # no stale images from an earlier run
+    pycolmap.undistort_images(
+        output, model_dir, image_dir, output_type="COLMAP", num_threads=num_threads
+    )
+    return output
