@@ -4,6 +4,7 @@ import torch
 
 from recon.cameras import Cameras, camera_rays
 from recon.cameras.cameras import intrinsics_matrix
+from recon.mesh.marching_cubes import grid_slabs
 from recon.mesh.tsdf import (
     TSDFConfig,
     fuse_depth_maps,
@@ -117,8 +118,7 @@ def test_batching_does_not_change_the_running_average():
 
 def test_sample_colors_reproduces_a_linear_field():
     volume = tsdf_volume(AABB, TSDFConfig(resolution=8))
-    n = volume.weight.numel()
-    points = volume.points(torch.arange(n))
+    ((_, points),) = grid_slabs(volume.origin, volume.voxel_size, volume.shape, 10**9)
     volume.color.view(-1, 3)[:] = 0.3 * points + 0.2
     volume.color_weight.fill_(1.0)
     query = torch.tensor([[0.05, 0.1, -0.3], [0.6, -0.7, 0.8]])

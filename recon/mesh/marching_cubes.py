@@ -8,7 +8,7 @@ The grid: origin = aabb_min, isotropic spacing h, n_a = ceil(extent_a / h) + 1 s
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -43,6 +43,28 @@ def grid_shape(aabb, resolution: int) -> tuple[tuple[int, int, int], float]:
     return shape, h
 
 
+def grid_slabs(
+    origin, spacing: float, shape: tuple[int, int, int], chunk: int, device=None
+) -> Iterator[tuple[slice, Tensor]]:
+    """Batches of grid points in C order: (flat slice, points (n, 3)) for whole x-slices.
+
+    Point (i, j, k) = origin + h (i, j, k). Each batch holds max(1, chunk // (Y Z)) x-slices,
+    built from one precomputed (Y Z, 2) plane: no integer division on the hot path.
+    """
+    nx, ny, nz = shape
+    origin = torch.as_tensor(origin, dtype=torch.float32, device=device)
+    y = origin[1] + spacing * torch.arange(ny, device=device, dtype=torch.float32)
+    z = origin[2] + spacing * torch.arange(nz, device=device, dtype=torch.float32)
+    plane = torch.stack(torch.meshgrid(y, z, indexing="ij"), dim=-1).reshape(1, ny * nz, 2)
+    step = max(1, chunk // (ny * nz))
+    for i0 in range(0, nx, step):
+        i1 = min(i0 + step, nx)
+        x = origin[0] + spacing * torch.arange(i0, i1, device=device, dtype=torch.float32)
+        xs = x[:, None, None].expand(-1, ny * nz, 1)
+        points = torch.cat([xs, plane.expand(i1 - i0, -1, -1)], dim=-1).reshape(-1, 3)
+        yield slice(i0 * ny * nz, i1 * ny * nz), points
+
+
 def evaluate_grid(
     fn: Field,
     origin,
@@ -51,20 +73,16 @@ def evaluate_grid(
     chunk: int = 1 << 18,
     device: str | torch.device = "cpu",
 ) -> np.ndarray:
-    """fn at origin + h (i, j, k) for all grid indices, evaluated in chunks -> (X, Y, Z) float32.
+    """fn at origin + h (i, j, k) for all grid indices, in batches of about `chunk` points
+    (at least one x-slice) -> (X, Y, Z) float32.
 
     Non-finite outputs are replaced by 0 (no density / no surface) so a single NaN cannot
     break the extraction.
     """
-    origin_t = torch.as_tensor(np.asarray(origin, np.float64), dtype=torch.float32, device=device)
-    nx, ny, nz = shape
-    out = np.empty(nx * ny * nz, dtype=np.float32)
+    out = np.empty(int(np.prod(shape)), dtype=np.float32)
     with torch.no_grad():
-        for start in range(0, out.size, chunk):
-            idx = torch.arange(start, min(start + chunk, out.size), device=device)
-            ijk = torch.stack([idx // (ny * nz), (idx // nz) % ny, idx % nz], dim=-1)
-            values = fn(origin_t + spacing * ijk.to(torch.float32)).reshape(-1)
-            out[start : start + len(idx)] = values.float().cpu().numpy()
+        for flat, points in grid_slabs(origin, spacing, shape, chunk, device):
+            out[flat] = fn(points).reshape(-1).float().cpu().numpy()
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).reshape(shape)
 
 

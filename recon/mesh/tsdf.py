@@ -20,7 +20,7 @@ import trimesh
 from torch import Tensor
 
 from recon.cameras import Cameras
-from recon.mesh.marching_cubes import grid_shape, mesh_from_grid
+from recon.mesh.marching_cubes import grid_shape, grid_slabs, mesh_from_grid
 
 
 @dataclass(frozen=True)
@@ -52,12 +52,6 @@ class TSDFVolume:
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(self.tsdf.shape)
-
-    def points(self, flat_index: Tensor) -> Tensor:
-        """World positions (N, 3) of flat voxel indices (N,)."""
-        _, ny, nz = self.shape
-        ijk = torch.stack([flat_index // (ny * nz), (flat_index // nz) % ny, flat_index % nz], -1)
-        return self.origin + self.voxel_size * ijk.to(self.origin.dtype)
 
 
 def tsdf_volume(aabb, config: TSDFConfig, device: str | torch.device = "cpu") -> TSDFVolume:
@@ -130,15 +124,12 @@ def integrate(
         rgbs = rgbs.to(device=device, dtype=dtype) / (255.0 if rgbs.dtype == torch.uint8 else 1.0)
     tsdf, weight = volume.tsdf.view(-1), volume.weight.view(-1)
     color, color_weight = volume.color.view(-1, 3), volume.color_weight.view(-1)
-    step = max(1, chunk // max(1, len(cameras)))
-    for start in range(0, tsdf.numel(), step):
-        sl = slice(start, min(start + step, tsdf.numel()))  # views into the grid: updates in place
-        index = torch.arange(sl.start, sl.stop, device=device)
-        s_t, s_w, s_c, s_v = project_tsdf(
-            volume.points(index), cameras, depths, rgbs, volume.truncation
-        )
-        _running_average(tsdf[sl], weight[sl], s_t, s_w)
-        _running_average(color[sl], color_weight[sl], s_c, s_v)
+    voxels_per_batch = max(1, chunk // max(1, len(cameras)))
+    slabs = grid_slabs(volume.origin, volume.voxel_size, volume.shape, voxels_per_batch, device)
+    for flat, points in slabs:  # flat slices are views into the grid: updated in place
+        s_t, s_w, s_c, s_v = project_tsdf(points, cameras, depths, rgbs, volume.truncation)
+        _running_average(tsdf[flat], weight[flat], s_t, s_w)
+        _running_average(color[flat], color_weight[flat], s_c, s_v)
     return volume
 
 
