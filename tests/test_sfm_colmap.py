@@ -1,0 +1,207 @@
+"""The pycolmap SfM engine: attempt ladder, pair selection, failure reasons, the zlib import
+trap, and (slow) real runs on the first fox photos."""
+
+import json
+import subprocess
+import sys
+import textwrap
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from recon.cameras.conventions import opencv_c2w_from_opengl_c2w
+from recon.metrics.pose import pose_errors
+from recon.sfm import colmap_steps as steps
+from recon.sfm.colmap_diagnose import ImageMatchStats, unregistered_reason
+from recon.sfm.colmap_sfm import (
+    SfmConfig,
+    SfmError,
+    attempt_ladder,
+    camera_groups,
+    run_sfm,
+    validate_config,
+)
+from recon.sfm.photos import Photo, PhotoSet
+
+FOX = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fox"
+
+
+def test_zlib_before_pycolmap_keeps_png_and_gzip_working(tmp_path):
+    """The trap: importing pycolmap before Python's zlib corrupts the heap of every later zlib
+    user (measured: `import pycolmap` then `cv2.imwrite(png)` aborts with "free(): invalid
+    pointer" in deflateEnd, exit 134; gzip and numba break the same way). `recon/__init__.py`
+    imports zlib first; here the subprocess imports zlib, then pycolmap BEFORE recon, and must
+    still write and read PNGs and gzip files."""
+    script = textwrap.dedent(
+        f"""
+        import zlib
+        import pycolmap
+        import gzip
+        import cv2
+        import numpy as np
+        import recon
+        img = (np.arange(64 * 64 * 3) % 251).astype(np.uint8).reshape(64, 64, 3)
+        for i in range(10):
+            path = r"{tmp_path}/t{{}}.png".format(i)
+            assert cv2.imwrite(path, img)
+            assert (cv2.imread(path) == img).all()
+            with gzip.open(r"{tmp_path}/t.gz", "wb") as f:
+                f.write(img.tobytes() * 10)
+            with gzip.open(r"{tmp_path}/t.gz", "rb") as f:
+                assert f.read() == img.tobytes() * 10
+        print("ok")
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "ok"
+
+
+def test_attempt_ladder():
+    small = attempt_ladder(SfmConfig(), 40)
+    assert [a.matcher for a in small] == ["exhaustive", "exhaustive", "exhaustive"]
+    assert [a.guided_matching for a in small] == [False, False, True]
+    assert small[1].max_num_features == 16384 and small[1].peak_threshold < small[0].peak_threshold
+    assert small[1].abs_pose_min_num_inliers < small[0].abs_pose_min_num_inliers
+    # Attempt 3 changes only the matching, so it reuses attempt 2's features.
+    assert replace(small[2], name="", matcher="", guided_matching=False) == replace(
+        small[1], name="", matcher="", guided_matching=False
+    )
+    big = attempt_ladder(SfmConfig(), 150)
+    assert [a.matcher for a in big] == ["sequential", "sequential", "exhaustive"]
+    assert len(attempt_ladder(SfmConfig(), 500)) == 2  # no exhaustive fallback for 500 photos
+    assert len(attempt_ladder(SfmConfig(try_harder=False), 40)) == 1
+    assert attempt_ladder(SfmConfig(matcher="sequential"), 40)[0].matcher == "sequential"
+
+
+def test_validate_config_rejects_unknown_choices():
+    for bad in ({"matcher": "vocab"}, {"mapper": "hierarchical"}, {"camera_model": "FISHEYE9"}):
+        with pytest.raises(ValueError):
+            validate_config(SfmConfig(**bad))
+    validate_config(SfmConfig(camera_model="OPENCV", mapper="global"))
+
+
+def test_pairs():
+    names = [f"img{i}.jpg" for i in range(12)]
+    assert len(steps.exhaustive_pairs(names)) == 66
+    shuffled = names[::-1]
+    pairs = steps.sequential_pairs(shuffled, overlap=3, num_keyframes=3)
+    assert len(pairs) == len(set(pairs))
+    assert all(steps.natural_key(a) < steps.natural_key(b) for a, b in pairs)  # img2 before img10
+    index = {n: i for i, n in enumerate(names)}
+    offsets = {index[b] - index[a] for a, b in pairs}
+    assert {1, 2, 3, 4} <= offsets  # the window 1..3 and the quadratic steps 2^k, k < 3
+    assert ("img1.jpg", "img5.jpg") in pairs  # quadratic: 1 + 2^2
+    assert ("img0.jpg", "img8.jpg") in pairs  # keyframes 0, 4, 8 (every 12 // 3) close the loop
+    assert ("img1.jpg", "img9.jpg") not in pairs
+    assert len(pairs) == 11 + 10 + 9 + 8 + 1  # i + {1, 2, 3, 4} while < 12, plus (0, 8)
+
+
+def test_unregistered_reasons():
+    def reason(keypoints, raw, inliers, verified, other=None):
+        return unregistered_reason(ImageMatchStats(keypoints, raw, inliers, verified), 15, other)
+
+    assert reason(3, 0, 0, 0).startswith("no features: 3 SIFT keypoints")
+    assert reason(4000, 9, 0, 0).startswith("too few matches: best partner image has 9")
+    assert reason(4000, 120, 11, 0).startswith(
+        "no verified pair: best partner has 120 matches but only 11"
+    )
+    assert "separate, smaller model (#2)" in reason(4000, 900, 300, 4, other=2)
+    assert "pose estimation failed" in reason(4000, 900, 300, 4)
+    assert "not in the feature database" in unregistered_reason(None, 15, None)
+
+
+def test_camera_groups_split_mixed_sizes():
+    def photo(name, w, h):
+        return Photo(Path(name), name, w, h, "RGB", "", name)
+
+    photos = PhotoSet(
+        (photo("a", 640, 480), photo("b", 480, 640), photo("c", 640, 480)), (), Path(".")
+    )
+    assert camera_groups(photos, single_camera=True) == [["a", "c"], ["b"]]
+    assert camera_groups(photos, single_camera=False) == [["a"], ["b"], ["c"]]
+
+
+def test_blank_photos_raise_one_line_sfm_error(tmp_path):
+    src = tmp_path / "blank"
+    src.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((120, 160), 90 + 40 * i, np.uint8)).save(src / f"b{i}.png")
+    with pytest.raises(SfmError) as info:
+        run_sfm(src, tmp_path / "work", SfmConfig(num_threads=1))
+    message = str(info.value)
+    assert message.startswith("0 of 3 images registered: 3 images have no usable features")
+    assert "\n" not in message
+
+
+def fox_subset(tmp_path: Path, count: int) -> Path:
+    """The first `count` fox photos at 1/4 size (270x480), enough for SfM in seconds."""
+    out = tmp_path / "fox"
+    out.mkdir()
+    for path in sorted((FOX / "images").glob("*.jpg"))[:count]:
+        Image.open(path).resize((270, 480), Image.LANCZOS).save(out / path.name, quality=95)
+    return out
+
+
+def fox_accuracy(reconstruction) -> dict:
+    meta = json.loads((FOX / "transforms.json").read_text())
+    ref = {Path(f["file_path"]).name: np.asarray(f["transform_matrix"]) for f in meta["frames"]}
+    names = sorted(im.name for im in reconstruction.images.values() if im.has_pose)
+    est = []
+    for name in names:
+        world_from_cam = np.eye(4)
+        world_from_cam[:3] = (
+            reconstruction.find_image_with_name(name).cam_from_world().inverse().matrix()
+        )
+        est.append(world_from_cam)
+    ref_poses = opencv_c2w_from_opengl_c2w(np.stack([ref[n] for n in names]))
+    return pose_errors(np.stack(est), ref_poses, remove_common_rotation=True)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not FOX.exists(), reason="fox data not found beside the repo")
+def test_fox_subset_with_an_unrelated_photo(tmp_path):
+    """12 fox photos + 1 noise image: the fox photos register with accurate poses, the noise
+    image stays out with a database-derived reason, and the engine climbs its whole ladder."""
+    src = fox_subset(tmp_path, 12)
+    noise = np.random.default_rng(0).integers(0, 256, size=(480, 270, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(src / "zz_noise.png")
+    calls = []
+    result = run_sfm(src, tmp_path / "work", SfmConfig(num_threads=2), lambda *a: calls.append(a))
+    report = result.report
+    assert report["images_given"] == report["images_usable"] == 13
+    assert report["images_registered"] == result.reconstruction.num_reg_images() == 12
+    assert [u["name"] for u in report["unregistered"]] == ["zz_noise.png"]
+    assert "match" in report["unregistered"][0]["reason"]
+    assert [a["registered"] for a in report["attempts"]] == [12, 12, 12]  # all 3 tried, none got 13
+    assert report["chosen_attempt"] == 1  # ties go to the first (fewer points would lose)
+    assert report["cameras"][0]["model"] == "PINHOLE"
+    assert {im.name for im in result.reconstruction.images.values()} == {
+        p.name for p in result.images_dir.iterdir()
+    }
+    assert 0 < report["mean_reprojection_error_px"] < 1.5 and report["mean_track_length"] > 2.5
+    phases = {c[0] for c in calls}
+    assert {"features", "matching", "mapping", "undistortion", "features (attempt 2)"} <= phases
+    errors = fox_accuracy(result.reconstruction)
+    assert errors["median_rotation_error_deg"] < 0.5
+    assert errors["median_center_error_pct"] < 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not FOX.exists(), reason="fox data not found beside the repo")
+def test_single_thread_runs_repeat_exactly(tmp_path):
+    """With num_threads=1 and a fixed seed two runs give bit-identical poses."""
+    src = fox_subset(tmp_path, 8)
+    config = SfmConfig(num_threads=1, try_harder=False)
+    poses = []
+    for run in range(2):
+        model = run_sfm(src, tmp_path / f"work{run}", config).reconstruction
+        poses.append({im.name: im.cam_from_world().matrix() for im in model.images.values()})
+    assert poses[0].keys() == poses[1].keys() and len(poses[0]) == 8
+    for name in poses[0]:
+        np.testing.assert_array_equal(poses[0][name], poses[1][name])
