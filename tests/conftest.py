@@ -53,3 +53,35 @@ def make_blender_dataset(root: Path, n_train: int = 4, n_test: int = 2, size: in
 @pytest.fixture
 def blender_dataset(tmp_path) -> Path:
     return make_blender_dataset(tmp_path / "blender")
+
+
+def sphere_scene(n_cams: int = 8, size: int = 24, radius: float = 0.5):
+    """Analytic scene for method tests: a sphere coloured by its normal (0.5 + 0.5 n) on white,
+    seen by a ring of cameras. Returns (TrainData, SceneInfo)."""
+    import torch
+
+    from recon.cameras import Cameras, camera_rays
+    from recon.cameras.cameras import invert_rigid
+    from recon.models.base import SceneInfo, TrainData
+    from recon.render.paths import look_at
+
+    angles = torch.linspace(0, 2 * np.pi, n_cams + 1)[:-1]
+    eye = torch.stack([1.6 * torch.cos(angles), 1.6 * torch.sin(angles), 0.6 * torch.ones(n_cams)], -1)
+    c2w = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0, 1]))
+    f = size * 1.2
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]]).expand(n_cams, 3, 3).clone()
+    cams = Cameras(K, c2w, torch.full((n_cams,), size), torch.full((n_cams,), size))
+    images = []
+    for i in range(n_cams):
+        o, d, _ = camera_rays(cams, i)
+        b = (o * d).sum(-1)
+        c = (o * o).sum(-1) - radius**2
+        disc = b * b - c
+        t = -b - torch.sqrt(disc.clamp_min(0))
+        n = torch.nn.functional.normalize(o + t[..., None] * d, dim=-1)
+        img = torch.where((disc > 0)[..., None], 0.5 + 0.5 * n, torch.ones(3))
+        images.append(img)
+    info = SceneInfo(aabb=torch.tensor([[-0.7] * 3, [0.7] * 3]), unbounded=False,
+                     background=torch.ones(3), near=0.05, far=4.0)
+    del invert_rigid
+    return TrainData(torch.stack(images).float(), cams), info

@@ -45,7 +45,8 @@ def rays_from_pixels(uv: Tensor, K: Tensor, world_from_cam: Tensor) -> tuple[Ten
     Returns origins (..., 3), unit directions (..., 3) and `z_per_t` (...,): the optical-axis
     depth gained per unit of ray length, so depth_z = t * z_per_t.
     """
-    d_cam = unproject_pixels(uv, torch.ones_like(uv[..., 0]), K)  # z = 1 plane
+    shape = torch.broadcast_shapes(uv.shape[:-1], K.shape[:-2])
+    d_cam = unproject_pixels(uv.expand(*shape, 2), uv.new_ones(shape), K)  # z = 1 plane
     norm = d_cam.norm(dim=-1, keepdim=True)
     d_cam = d_cam / norm
     R = world_from_cam[..., :3, :3]

@@ -24,7 +24,7 @@ class LoopState:
     wall_s: float = 0.0  # training time so far (excludes eval and checkpoints)
     best_psnr: float = -math.inf
     evals_since_best: int = 0
-    last_eval_wall: float = -math.inf
+    last_eval_wall: float = 0.0  # the first evaluation comes after eval_every_s of training
     last_ckpt_wall: float = 0.0
 
 
