@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from recon.cameras import Cameras, camera_rays
-from recon.fields.sh import eval_sh, num_sh_bases
+from recon.fields.sh import C0, eval_sh, num_sh_bases
 from recon.fields.voxels import SparseVoxelGrid
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
 from recon.volrend import OccupancyGrid, ray_aabb_intersect, scene_to_unit_cube, terminated_mask, volume_render
@@ -77,6 +77,15 @@ class PlenoxelModel(Model):
     def density(self, points: Tensor) -> Tensor:
         with torch.no_grad():
             return torch.cat([self._sigma_unit(self.to_unit(p)) for p in points.split(1 << 18)])
+
+    def color(self, points: Tensor) -> Tensor:
+        """View-independent (degree-0 SH) colour at normalized points (N, 3) -> (N, 3), for meshes."""
+        with torch.no_grad():
+            out = []
+            for p in points.split(1 << 18):
+                sh = self.grid.query(self.to_unit(p), ["sh"])["sh"].view(-1, 3, num_sh_bases(self.cfg.sh_degree))
+                out.append(torch.sigmoid(sh[:, :, 0] * C0))
+            return torch.cat(out)
 
     def _rgb_sigma(self, x: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
         v = self.grid.query(self.to_unit(x))
@@ -178,7 +187,7 @@ class PlenoxelModel(Model):
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
             g["lr"] = base * decay
         self.optimizer.step()
-        return {"loss": float(loss.detach()), "psnr": -10.0 * math.log10(max(float(mse), 1e-10)),
+        return {"loss": float(loss.detach()), "psnr": -10.0 * math.log10(max(float(mse.detach()), 1e-10)),
                 "samples_per_ray": out["samples"] / self.cfg.rays_per_batch, "voxels": self.grid.num_rows}
 
     @torch.no_grad()

@@ -94,6 +94,7 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
             "width": int(w), "height": int(h),
             "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
             "cam_from_world": np.linalg.inv(s_from_c).tolist(),
+            **({"depth_gt": str(frame.depth_path)} if frame.depth_path else {}),
         })
     cameras = {
         "convention": "OpenCV camera frame; cam_from_world maps the normalized scene frame to the camera",
@@ -105,6 +106,7 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
         "far": 4.0 if bounded else 1000.0,
         "config": asdict(cfg),
         "source": posed.source,
+        "gt_mesh": str(posed.gt_mesh) if posed.gt_mesh else None,
         "frames": frames_json,
     }
     sfm_out.mkdir(parents=True, exist_ok=True)

@@ -29,6 +29,7 @@ class PosedImage:
     dist: np.ndarray | None  # OpenCV (k1, k2, p1, p2) or None for a pinhole
     world_from_cam: np.ndarray  # (4, 4) OpenCV convention
     split: str  # train | val | test
+    depth_path: Path | None = None  # ground-truth z-depth map (EXR, original units), if the dataset has one
 
 
 @dataclass
@@ -37,6 +38,7 @@ class PosedImages:
     points: np.ndarray | None = None  # (P, 3) world
     point_colors: np.ndarray | None = None  # (P, 3) uint8
     source: str = ""
+    gt_mesh: Path | None = None  # ground-truth mesh (original units), if the dataset has one
     extra: dict = field(default_factory=dict)
 
 
@@ -104,8 +106,20 @@ def _read_transforms_file(path: Path, split: str | None) -> list[PosedImage]:
         img_path = _resolve_image(path.parent, file_path)
         K, dist = _intrinsics(meta, fr, img_path)
         name = img_path.stem
-        out.append(PosedImage(name, img_path, K, dist, opencv_c2w_from_opengl_c2w(c2w_gl), split or ""))
+        depth = fr.get("depth_file_path")
+        depth = (path.parent / depth).resolve() if depth else None
+        out.append(PosedImage(name, img_path, K, dist, opencv_c2w_from_opengl_c2w(c2w_gl), split or "",
+                              depth if depth is not None and depth.exists() else None))
     return out
+
+
+def _gt_mesh(path: Path) -> Path | None:
+    """`gt_mesh_path` (recon's key) in a transforms file: the scene's ground-truth mesh."""
+    try:
+        rel = json.loads(path.read_text()).get("gt_mesh_path")
+    except (json.JSONDecodeError, AttributeError):
+        return None
+    return (path.parent / rel).resolve() if rel and (path.parent / rel).exists() else None
 
 
 def holdout_split(names: list[str], every: int = 8) -> list[str]:
@@ -142,12 +156,14 @@ def read_transforms(path: Path) -> PosedImages:
             return read_transforms(path / "transforms.json")
         else:
             raise SourceError(f"{path} holds no transforms.json or transforms_<split>.json")
+        gt_mesh = next((m for p in split_files.values() if (m := _gt_mesh(p))), None)
     else:
         frames = _read_transforms_file(path, None)
         for f, s in zip(frames, holdout_split([f.name for f in frames])):
             f.split = s
+        gt_mesh = _gt_mesh(path)
     _dedupe_names(frames)
-    return PosedImages(frames, source=str(path))
+    return PosedImages(frames, source=str(path), gt_mesh=gt_mesh)
 
 
 def read_colmap(model_dir: Path, images_dir: Path | None = None) -> PosedImages:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import resource
 import shutil
 import signal
 import time
@@ -194,7 +195,8 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
                "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
                "model_stats": {k: float(v) for k, v in model.stats().items()},
                "model_bytes": os.path.getsize(model_path(ws, run)),
-               "device": str(device), "threads": torch.get_num_threads()}
+               "device": str(device), "threads": torch.get_num_threads(),
+               "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
     atomic_write_json(ws.run_json(run), summary)
     ws.record_stage(f"train/{run}", config={"train": asdict(cfg), "method": asdict(method_cfg)},
                     inputs={"cameras": ws.cameras_json}, outputs={"model": model_path(ws, run)},

@@ -23,6 +23,7 @@ class Scene:
     frames: list[dict]
     scene_from_world: Similarity
     info: SceneInfo
+    gt_mesh: str | None = None  # ground-truth mesh of the dataset (original units), if known
 
     def split(self, name: str) -> list[int]:
         return [i for i, f in enumerate(self.frames) if f["split"] == name]
@@ -58,7 +59,7 @@ def load_scene(ws: Workspace, with_points: bool = True) -> Scene:
         near=float(doc["near"]), far=float(doc["far"]),
         points=points, point_colors=colors,
     )
-    return Scene(doc["frames"], sim, info)
+    return Scene(doc["frames"], sim, info, doc.get("gt_mesh"))
 
 
 def load_images(ws: Workspace, scene: Scene, indices: list[int]) -> torch.Tensor:

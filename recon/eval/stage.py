@@ -1,0 +1,159 @@
+"""The `eval` stage: held-out renders -> PSNR / SSIM / LPIPS / depth error, mesh -> geometry
+error against ground truth, sfm -> pose error against reference poses, log -> speed.
+Writes runs/<run>/eval/metrics.json, then report.md and speed_vs_error.png for all runs."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from recon.eval.report import write_report
+from recon.eval.speed import read_log, speed_metrics
+from recon.io.exr import read_depth_exr
+from recon.metrics.image import depth_errors, psnr, ssim
+from recon.train.stage import load_model, model_path, pick_device
+from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    split: str = "test"  # held-out split
+    every: int = 1  # evaluate every N-th view of the split (lego-200 protocol: 8)
+    gt_mesh: str = ""  # ground-truth mesh (original units); default: the dataset's, if it has one
+    gt_points: str = ""  # ground-truth point cloud (original units), instead of a mesh
+    tau: float = 0.0  # F-score threshold in original units (0 = 1 % of the GT bounding-box diagonal)
+    gt_poses: str = ""  # reference poses (transforms.json or COLMAP model) for sfm pose accuracy
+    lpips: bool = True  # compute LPIPS when its weights are available
+    device: str = "auto"  # auto | cpu | cuda
+
+
+def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model) -> dict:
+    from recon.metrics.lpips import lpips
+    from recon.workspace.scene import load_images
+
+    model, scene, _ = load_model(ws, run, device)
+    idx = scene.split(cfg.split)[:: cfg.every]
+    if not idx:
+        raise WorkspaceError(f"the scene has no '{cfg.split}' views to evaluate")
+    cams = scene.cameras(idx, device)
+    gts = load_images(ws, scene, idx).to(device)
+    per_view, times = {}, []
+    for i, fi in enumerate(idx):
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = model.render(cams[i])
+        times.append(time.perf_counter() - t0)
+        pred = out["rgb"].clamp(0, 1)
+        m = {"psnr": float(psnr(pred, gts[i])), "ssim": float(ssim(pred, gts[i]))}
+        if lpips_model is not None:
+            m["lpips"] = float(lpips(pred, gts[i], lpips_model))
+        gt_depth_path = scene.frames[fi].get("depth_gt")
+        if gt_depth_path and Path(gt_depth_path).exists():
+            gt_d = read_depth_exr(gt_depth_path)
+            h, w = pred.shape[:2]
+            gt_d = cv2.resize(gt_d, (w, h), interpolation=cv2.INTER_NEAREST)
+            pred_d = scene.depth_to_world_units(out["depth"].cpu().numpy())
+            pred_d = np.where(out["acc"].cpu().numpy() > 0.5, pred_d, 0.0)
+            errs = depth_errors(torch.from_numpy(pred_d), torch.from_numpy(gt_d),
+                                torch.from_numpy((pred_d > 0) & (gt_d > 0)))
+            m.update({f"depth_{k}": v for k, v in errs.items() if k != "count"})
+        per_view[scene.frames[fi]["name"]] = m
+    keys = sorted({k for v in per_view.values() for k in v})
+    mean = {k: float(np.nanmean([v[k] for v in per_view.values() if k in v])) for k in keys}
+    return {"per_view": per_view, "mean": mean, "views": len(idx),
+            "render_ms_per_frame": round(1000 * float(np.median(times)), 2),
+            "resolution": [int(cams.width[0]), int(cams.height[0])]}
+
+
+def geometry_section(ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: str | None) -> dict:
+    import trimesh
+
+    from recon.metrics.geometry import geometry_metrics
+
+    gt_path = cfg.gt_points or cfg.gt_mesh or scene_gt_mesh
+    if not gt_path:
+        return {"status": "no ground truth (pass --gt-mesh or --gt-points)"}
+    meshes = sorted(ws.mesh_dir(run).glob("mesh.*")) if ws.mesh_dir(run).exists() else []
+    meshes = [m for m in meshes if m.suffix in (".ply", ".obj", ".glb")]
+    if not meshes:
+        return {"status": f"no mesh for run '{run}': run `recon mesh -w {ws.root} --run {run}` first",
+                "gt": str(gt_path)}
+    gt = trimesh.load(str(gt_path), process=False, force=None)
+    pred = trimesh.load(str(meshes[0]), process=False, force="mesh")
+    diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
+    tau = cfg.tau or 0.01 * diag
+    m = geometry_metrics(pred, gt, tau)
+    return {"status": "ok", "gt": str(gt_path), "mesh": str(meshes[0]), "tau": tau,
+            **{k: float(v) for k, v in m.items() if np.isscalar(v)}}
+
+
+def pose_section(ws: Workspace, cfg: EvalConfig) -> dict:
+    if not cfg.gt_poses:
+        return {"status": "no reference poses (pass --gt-poses)"}
+    from recon.eval.poses import sfm_pose_accuracy
+
+    return sfm_pose_accuracy(ws, Path(cfg.gt_poses))
+
+
+def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = False, progress=None) -> dict:
+    from recon.metrics.lpips import NETWORK, load_lpips
+    from recon.workspace.scene import load_scene
+
+    runs = runs or [r for r in ws.runs() if model_path(ws, r).exists()]
+    if not runs:
+        raise WorkspaceError(f"no trained run in {ws.root}: run `recon train` first")
+    device = pick_device(cfg.device)
+    lpips_model = load_lpips(device) if cfg.lpips else None
+    lpips_note = NETWORK if lpips_model is not None else "LPIPS unavailable (weights could not be obtained)"
+    scene = load_scene(ws, with_points=False)
+    poses = pose_section(ws, cfg)
+    results = {}
+    for k, run in enumerate(runs):
+        ws.require_fresh(f"train/{run}", force)
+        started = time.time()
+        run_doc, log = _run_doc(ws, run), read_log(ws.log_jsonl(run))
+        metrics = {"run": run, "method": run_doc["method"], "split": cfg.split, "lpips_network": lpips_note,
+                   **image_metrics(ws, run, cfg, device, lpips_model),
+                   "geometry": geometry_section(ws, run, cfg, scene.gt_mesh),
+                   "pose": poses, "speed": speed_metrics(run_doc, log)}
+        metrics = _finite(metrics)
+        atomic_write_json(ws.eval_dir(run) / "metrics.json", metrics)
+        ws.record_stage(f"eval/{run}", config=asdict(cfg), inputs={"model": model_path(ws, run)},
+                        outputs={"metrics": ws.eval_dir(run) / "metrics.json"}, upstream=[f"train/{run}"],
+                        started=started, ended=time.time())
+        results[run] = metrics
+        if progress:
+            progress("eval", k + 1, len(runs), run=run, psnr=round(metrics["mean"]["psnr"], 2))
+    all_metrics = {r: _load_metrics(ws, r) for r in ws.runs()}
+    write_report(ws, {r: m for r, m in all_metrics.items() if m is not None})
+    return results
+
+
+def _run_doc(ws: Workspace, run: str) -> dict:
+    import json
+
+    return json.loads(ws.run_json(run).read_text())
+
+
+def _load_metrics(ws: Workspace, run: str) -> dict | None:
+    import json
+
+    p = ws.eval_dir(run) / "metrics.json"
+    return json.loads(p.read_text()) if p.exists() else None
+
+
+def _finite(obj):
+    """JSON has no inf/nan: write them as strings ("inf") so readers see them plainly."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    return obj

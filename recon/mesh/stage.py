@@ -1,0 +1,100 @@
+"""The `mesh` stage: a trained run -> WS/runs/<run>/mesh/mesh.<fmt> in ORIGINAL scene units.
+
+auto = marching cubes on the density field for volume methods, TSDF fusion of rendered depth
+for 3dgs (or any method, with --method tsdf).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from recon.mesh.cleanup import mesh_stats, remove_small_components, transform_mesh, write_mesh
+from recon.mesh.marching_cubes import choose_density_threshold, extract_density_mesh
+from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
+from recon.train.stage import load_model, model_path, pick_device
+from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    method: str = "auto"  # auto | marching-cubes | tsdf
+    resolution: int = 256  # samples (marching cubes) or voxels (TSDF) along the box's longest side
+    threshold: float = 0.0  # marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel)
+    truncation: float = 0.02  # TSDF truncation as a fraction of the box's longest side
+    min_component: float = 0.02  # components with fewer faces than this fraction are removed
+    format: str = "ply"  # ply | obj | glb
+    device: str = "auto"  # auto | cpu | cuda
+
+
+def _has_density(model) -> bool:
+    try:
+        model.density(torch.zeros(1, 3, device=next(iter(model.buffers())).device))
+        return True
+    except NotImplementedError:
+        return False
+
+
+def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, progress=None) -> dict:
+    key = f"train/{run}"
+    ws.require_fresh(key, force)
+    device = pick_device(cfg.device)
+    model, scene, run_doc = load_model(ws, run, device)
+    aabb = scene.info.aabb.to(device)
+    method = cfg.method
+    if method == "auto":
+        method = "marching-cubes" if _has_density(model) else "tsdf"
+    started = time.time()
+    if method == "marching-cubes":
+        if not _has_density(model):
+            raise WorkspaceError(f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf")
+        side = float((aabb[1] - aabb[0]).max())
+        threshold = cfg.threshold or choose_density_threshold(side / cfg.resolution)
+        color_fn = getattr(model, "color", None)
+        mesh = extract_density_mesh(model.density, aabb, cfg.resolution, threshold, color_fn=color_fn,
+                                    device=device)
+        detail = {"threshold": threshold}
+    elif method == "tsdf":
+        idx = scene.split("train")
+        cams = scene.cameras(idx, device)
+        depths, rgbs = [], []
+        for i in range(len(cams)):
+            with torch.no_grad():
+                out = model.render(cams[i])
+            # pixels the model leaves empty carve free space: give them a depth beyond the box
+            far = torch.full_like(out["depth"], 1e3)
+            depths.append(torch.where(out["acc"] > 0.5, out["depth"], far))
+            rgbs.append(out["rgb"].clamp(0, 1))
+            if progress:
+                progress("render depth", i + 1, len(cams))
+        tcfg = TSDFConfig(resolution=cfg.resolution, truncation=cfg.truncation)
+        mesh = fuse_depth_maps(cams, torch.stack(depths), torch.stack(rgbs), aabb, tcfg)
+        detail = {"views": len(cams)}
+    else:
+        raise WorkspaceError(f"unknown mesh method {cfg.method!r}")
+    if len(mesh.faces) == 0:
+        raise WorkspaceError(f"the {method} mesh of run '{run}' is empty: is the run trained?")
+    raw_faces = len(mesh.faces)
+    mesh = remove_small_components(mesh, cfg.min_component)
+    sim = scene.scene_from_world  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
+    mesh = transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
+    out_path = ws.mesh_dir(run) / f"mesh.{cfg.format}"
+    write_mesh(mesh, out_path)
+    stats = mesh_stats(mesh)
+    result = {"run": run, "method": method, "path": str(out_path), "faces_before_cleanup": raw_faces,
+              **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
+              "seconds": round(time.time() - started, 2), **detail}
+    atomic_write_json(ws.mesh_dir(run) / "mesh.json", result)
+    ws.record_stage(f"mesh/{run}", config=asdict(cfg), inputs={"model": model_path(ws, run)},
+                    outputs={"mesh": out_path}, upstream=[key], started=started, ended=time.time(),
+                    extra={"faces": result.get("faces")})
+    return result
+
+
+def read_mesh_json(ws: Workspace, run: str) -> dict | None:
+    p = ws.mesh_dir(run) / "mesh.json"
+    return json.loads(p.read_text()) if p.exists() else None
