@@ -20,6 +20,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
+from recon.volrend.samplers import uniform
 from recon.volrend.volrend import render_transmittance
 
 
@@ -134,9 +135,10 @@ class OccupancyGrid(nn.Module):
             cells = torch.arange(n, device=dev)
         else:
             k = max(1, math.ceil(fraction * n))
-            rand = torch.randint(0, n, (k,), device=dev, generator=generator)
+            gdev = generator.device if generator is not None else dev
+            rand = torch.randint(0, n, (k,), device=gdev, generator=generator).to(dev)
             cells = torch.unique(torch.cat([rand, self.occupied.nonzero()[:, 0]]))
-        u = torch.rand((len(cells), 3), device=dev, generator=generator)
+        u = uniform((len(cells), 3), self.opacity, generator)
         x = cell_points(cells, self.resolution, u)
         sigma = torch.cat([density_fn(c) for c in x.split(chunk)])
         alpha = -torch.expm1(-sigma.float().clamp_min(0.0) * step)

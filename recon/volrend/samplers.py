@@ -11,6 +11,13 @@ import torch
 from torch import Tensor
 
 
+def uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | None) -> Tensor:
+    """U[0, 1) of `like`'s dtype and device, drawn on the generator's own device (a CPU
+    generator can then drive CUDA tensors reproducibly)."""
+    dev = generator.device if generator is not None else like.device
+    return torch.rand(shape, generator=generator, device=dev, dtype=like.dtype).to(like.device)
+
+
 def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Slab method: t_near = max_k min(t0_k, t1_k), t_far = min_k max(t0_k, t1_k),
     t0/1_k = (aabb[0/1, k] - o_k) / d_k.
@@ -46,7 +53,7 @@ def stratified_intervals(
     s = torch.linspace(0.0, 1.0, n_samples + 1, device=device, dtype=dtype).expand(R, -1)
     if jitter and n_samples > 1:
         centres = 0.5 * (s[:, 1:] + s[:, :-1])  # (R, S)
-        u = torch.rand((R, n_samples - 1), device=device, dtype=dtype, generator=generator)
+        u = uniform((R, n_samples - 1), near, generator)
         interior = centres[:, :-1] + (centres[:, 1:] - centres[:, :-1]) * u
         s = torch.cat([s[:, :1], interior, s[:, -1:]], dim=-1)
     edges = near[:, None] + (far - near)[:, None] * s
@@ -90,7 +97,7 @@ def sample_pdf(
     cdf[:, -1] = 1.0  # exact top so u < 1 always lands in a bin
     offsets = torch.arange(n_samples, device=w.device, dtype=w.dtype).expand(R, -1)
     if jitter:
-        u = (offsets + torch.rand((R, n_samples), device=w.device, dtype=w.dtype, generator=generator)) / n_samples
+        u = (offsets + uniform((R, n_samples), w, generator)) / n_samples
     else:
         u = (offsets + 0.5) / n_samples
     idx = torch.searchsorted(cdf, u.contiguous(), right=True).clamp(1, S)  # bin = idx - 1

@@ -1,0 +1,182 @@
+"""`--method nerf`: the original NeRF (Mildenhall et al. 2020; seed "NeRF and the volume
+rendering integral", "Stratified and hierarchical sampling").
+
+Positional encoding (L = 10 for position, L = 4 for direction, raw input included), an MLP of
+`depth` x `width` whose layer `skip_layer` also sees the encoded input (the paper concatenates
+it to the fifth layer's activation: skips=[4] in the reference code), density from
+position only, colour from a `width` feature + the encoded direction through one `width / 2`
+layer. Two such networks: the coarse one is rendered at `n_coarse` stratified samples, the fine
+one at those plus `n_fine` samples drawn from the coarse weights by inverse-CDF sampling. The
+loss is the sum of both MSEs (seed, "The training objective").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from recon.cameras import Cameras
+from recon.fields.encodings import positional_encoding, positional_encoding_dim
+from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
+from recon.models.raymarch import exp_decay_lr, psnr, ray_bounds, render_image, sample_rays, set_lr
+from recon.volrend import (
+    contract,
+    intervals_from_points,
+    merge_points,
+    normalize_to_box,
+    sample_pdf,
+    spaced_intervals,
+    stratified_intervals,
+    volume_render,
+)
+
+
+@dataclass(frozen=True)
+class NeRFConfig:
+    """NeRF. Defaults are the CPU "fast" preset (same family, smaller); "paper" is the paper's."""
+
+    pos_bands: int = 10  # positional-encoding bands L of the position
+    dir_bands: int = 4  # positional-encoding bands L of the view direction
+    depth: int = 4  # layers of the position MLP (paper: 8)
+    width: int = 128  # width of the position MLP (paper: 256)
+    skip_layer: int = 2  # 0-based layer that receives [h, gamma(x)] (paper: 5, after layer 4's output)
+    n_coarse: int = 32  # stratified samples per ray for the coarse network (paper: 64)
+    n_fine: int = 64  # extra inverse-CDF samples per ray for the fine network (paper: 128)
+    rays_per_batch: int = 1024  # rays per training step (paper: 4096)
+    density_activation: str = "softplus"  # relu (paper) | softplus (smoother start, as mip-NeRF)
+    lr: float = 5e-4  # Adam learning rate at step 0
+    lr_final: float = 5e-5  # learning rate after lr_decay_steps (exponential decay)
+    lr_decay_steps: int = 20000  # steps of the learning-rate decay (paper: 250k x 1000 / 500)
+    chunk: int = 2048  # rays per chunk when rendering images
+    default_steps: int = 3000  # steps when no stopping rule is given
+    seed: int = 0  # seeds ray sampling and sample jitter
+
+
+PRESETS = {
+    "fast": {},
+    "paper": {"depth": 8, "width": 256, "skip_layer": 5, "n_coarse": 64, "n_fine": 128,
+              "rays_per_batch": 4096, "density_activation": "relu", "lr_decay_steps": 500000,
+              "default_steps": 200000, "chunk": 4096},
+}
+
+
+class NeRFMLP(nn.Module):
+    """(encoded position, encoded direction) -> (sigma, rgb), the NeRF architecture."""
+
+    def __init__(self, cfg: NeRFConfig):
+        super().__init__()
+        self.pos_dim = positional_encoding_dim(3, cfg.pos_bands)
+        dir_dim = positional_encoding_dim(3, cfg.dir_bands)
+        W, self.skip, self.activation = cfg.width, cfg.skip_layer, cfg.density_activation
+        dims = [self.pos_dim] + [W + (self.pos_dim if i == cfg.skip_layer else 0) for i in range(1, cfg.depth)]
+        self.layers = nn.ModuleList(nn.Linear(d, W) for d in dims)
+        self.sigma = nn.Linear(W, 1)
+        self.feature = nn.Linear(W, W)
+        self.color = nn.Sequential(nn.Linear(W + dir_dim, W // 2), nn.ReLU(), nn.Linear(W // 2, 3))
+
+    def geometry(self, x_enc: Tensor) -> tuple[Tensor, Tensor]:
+        """sigma (N,) >= 0 and the last hidden layer (N, W) from the encoded position."""
+        h = x_enc
+        for i, layer in enumerate(self.layers):
+            if i == self.skip:  # layer `skip` sees [h, gamma(x)] (NeRF's skip connection)
+                h = torch.cat([h, x_enc], -1)
+            h = F.relu(layer(h))
+        raw = self.sigma(h)[:, 0]
+        sigma = F.relu(raw) if self.activation == "relu" else F.softplus(raw - 1.0)
+        return sigma, h
+
+    def forward(self, x_enc: Tensor, d_enc: Tensor) -> tuple[Tensor, Tensor]:
+        sigma, h = self.geometry(x_enc)
+        rgb = torch.sigmoid(self.color(torch.cat([self.feature(h), d_enc], -1)))
+        return sigma, rgb
+
+
+class NeRFModel(Model):
+    def __init__(self, cfg: NeRFConfig, scene: SceneInfo):
+        super().__init__()
+        if cfg.density_activation not in ("relu", "softplus"):
+            raise ValueError(f"density_activation must be relu or softplus, got {cfg.density_activation!r}")
+        self.cfg, self.scene = cfg, scene
+        self.register_buffer("aabb", scene.aabb.clone().float())
+        self.register_buffer("background", scene.background.clone().float())
+        self.coarse, self.fine = NeRFMLP(cfg), NeRFMLP(cfg)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.optimizer = torch.optim.Adam(self.parameters(), lr=cfg.lr)
+
+    def encode_points(self, points: Tensor) -> Tensor:
+        """gamma of world points (N, 3): the box maps to [-1, 1]^3; unbounded scenes contract
+        the outside into the radius-2 ball and halve it, so the encoding input stays in [-1, 1]."""
+        y = normalize_to_box(points, self.aabb)
+        if self.scene.unbounded:
+            y = 0.5 * contract(y)
+        return positional_encoding(y, self.cfg.pos_bands)
+
+    def density(self, points: Tensor) -> Tensor:
+        return self.fine.geometry(self.encode_points(points))[0]
+
+    def _intervals(self, o: Tensor, d: Tensor, jitter: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Coarse intervals (R, Nc) x2 and the ray range (t_min, t_max) (R,) x2."""
+        t_min, t_max = ray_bounds(self.scene, o, d)
+        n, g = self.cfg.n_coarse, self.generator
+        if self.scene.unbounded:  # linear in disparity: as many samples beyond 2 x near as before
+            inv = torch.reciprocal
+            t0, t1 = spaced_intervals(t_min, t_max, n, jitter, inv, inv, g)
+        else:
+            t0, t1 = stratified_intervals(t_min, t_max, n, jitter, g)
+        return t0, t1, t_min, t_max
+
+    def _render_net(self, net: NeRFMLP, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor):
+        R, S = t0.shape
+        x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]  # (R, S, 3)
+        d_enc = positional_encoding(d, self.cfg.dir_bands)[:, None].expand(R, S, -1)
+        sigma, rgb = net(self.encode_points(x.reshape(-1, 3)), d_enc.reshape(R * S, -1))
+        return volume_render(sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=self.background)
+
+    def _render_rays(self, o: Tensor, d: Tensor, jitter: bool):
+        """Coarse render, inverse-CDF fine samples, fine render -> (coarse, fine) VolumeRender."""
+        t0, t1, t_min, t_max = self._intervals(o, d, jitter)
+        coarse = self._render_net(self.coarse, o, d, t0, t1)
+        edges = torch.cat([t0, t1[:, -1:]], -1)
+        t_fine = sample_pdf(edges, coarse.weights, self.cfg.n_fine, jitter, self.generator)
+        t_all = merge_points(0.5 * (t0 + t1), t_fine)
+        f0, f1 = intervals_from_points(t_all, t_min, t_max)
+        return coarse, self._render_net(self.fine, o, d, f0, f1)
+
+    def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+        cfg = self.cfg
+        set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
+        batch = sample_rays(data.rays(), cfg.rays_per_batch, self.generator)
+        coarse, fine = self._render_rays(batch["origins"], batch["directions"], jitter=True)
+        mse_c = torch.mean((coarse.rgb - batch["rgb"]) ** 2)
+        mse_f = torch.mean((fine.rgb - batch["rgb"]) ** 2)
+        loss = mse_c + mse_f
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return {"loss": loss.item(), "psnr": psnr(mse_f.item()), "psnr_coarse": psnr(mse_c.item()),
+                "samples_per_ray": float(cfg.n_coarse * 2 + cfg.n_fine)}
+
+    @torch.no_grad()
+    def render(self, camera: Cameras) -> dict[str, Tensor]:
+        def rays_fn(o: Tensor, d: Tensor):
+            _, fine = self._render_rays(o, d, jitter=False)
+            return fine.rgb, fine.depth, fine.acc
+
+        return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
+
+    def training_state(self) -> dict:
+        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state()}
+
+    def load_training_state(self, state: dict) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+
+
+def build(config: NeRFConfig, scene: SceneInfo) -> NeRFModel:
+    return NeRFModel(config, scene)
+
+
+SPEC = register(MethodSpec(name="nerf", config_cls=NeRFConfig, build=build, presets=PRESETS))

@@ -1,0 +1,191 @@
+"""`--method ngp`: Instant-NGP (Mueller et al. 2022; seed "Instant-NGP and the multiresolution
+hash grid"): a multiresolution hash encoding, a one-hidden-layer density MLP giving sigma
+(truncated exp) and a 15-dim geometry feature, a two-hidden-layer colour MLP on that feature and
+the spherical-harmonic encoding of the view direction, occupancy-grid empty-space skipping and
+early ray termination, Adam with eps 1e-15.
+
+A training step: draw a ray batch, march it through the occupancy grid (packed samples), drop
+samples behind T < eps using a density pre-pass without gradients, render the rest with
+gradients through `volrend.volume_render`, MSE, Adam; every `occupancy_every` steps the
+occupancy grid is refreshed from the density.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from recon.cameras import Cameras
+from recon.fields.hashgrid import HashGrid
+from recon.fields.sh import num_sh_bases, sh_basis
+from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
+from recon.models.raymarch import (
+    exp_decay_lr,
+    mlp,
+    psnr,
+    ray_bounds,
+    render_image,
+    sample_rays,
+    set_lr,
+    trunc_exp,
+)
+from recon.volrend import OccupancyGrid, scene_to_unit_cube, terminated_mask, volume_render
+from recon.volrend.samplers import uniform
+
+
+@dataclass(frozen=True)
+class NGPConfig:
+    """Instant-NGP. Defaults are the CPU "fast" preset; "paper" restores the paper's sizes."""
+
+    n_levels: int = 16  # hash-grid levels L
+    n_features: int = 2  # features per level F
+    log2_table_size: int = 17  # log2 of the per-level hash-table size T (paper: 19)
+    n_min: int = 16  # coarsest grid resolution N_min
+    n_max: int = 1024  # finest grid resolution N_max (paper: 2048 x scene scale)
+    hidden: int = 64  # width of the hidden layers of both MLPs
+    geo_features: int = 15  # geometry-feature channels passed from the density to the colour MLP
+    sh_degree: int = 3  # SH degree of the view-direction encoding (3 = the paper's 16 coefficients)
+    rays_per_batch: int = 1024  # rays per training step
+    march_steps: int = 512  # marching steps along the scene box diagonal (paper: 1024)
+    cone_angle: float = 1 / 256  # unbounded scenes only: step grows as t * cone_angle
+    occupancy_res: int = 64  # occupancy grid resolution (paper: 128)
+    occupancy_every: int = 16  # steps between occupancy-grid updates
+    occupancy_warmup: int = 256  # steps during which every cell is updated and kept occupied
+    occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
+    occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities (paper: 0.95)
+    eps_transmittance: float = 1e-4  # early ray termination threshold
+    lr: float = 1e-2  # Adam learning rate (grid and MLPs)
+    lr_final: float = 1e-3  # learning rate reached after lr_decay_steps (exponential decay)
+    lr_decay_steps: int = 5000  # steps of the learning-rate decay
+    weight_decay: float = 1e-6  # L2 on the MLP weights (not the grid)
+    chunk: int = 4096  # rays per chunk when rendering images
+    default_steps: int = 2000  # steps when no stopping rule is given
+    seed: int = 0  # seeds ray sampling, marching jitter and occupancy updates
+
+
+PRESETS = {
+    "fast": {},
+    "paper": {"log2_table_size": 19, "n_max": 2048, "rays_per_batch": 4096, "march_steps": 1024,
+              "occupancy_res": 128, "occupancy_decay": 0.95, "lr_decay_steps": 20000, "default_steps": 35000, "chunk": 16384},
+}
+
+
+class NGPField(nn.Module):
+    """(unit-cube points, directions) -> (sigma, rgb) through hash grid + two tiny MLPs."""
+
+    def __init__(self, cfg: NGPConfig):
+        super().__init__()
+        self.sh_degree = cfg.sh_degree
+        self.grid = HashGrid(cfg.n_levels, cfg.n_features, cfg.log2_table_size, cfg.n_min, cfg.n_max)
+        self.density_mlp = mlp(self.grid.out_dim, cfg.hidden, 1, 1 + cfg.geo_features)
+        self.color_mlp = mlp(cfg.geo_features + num_sh_bases(cfg.sh_degree), cfg.hidden, 2, 3)
+
+    def geometry(self, x_unit: Tensor) -> tuple[Tensor, Tensor]:
+        """sigma (N,) = trunc_exp(h_0), geometry feature (N, 15) = h_1..15 for h = MLP(enc(x))."""
+        h = self.density_mlp(self.grid(x_unit))
+        return trunc_exp(h[:, 0]), h[:, 1:]
+
+    def sigma(self, x_unit: Tensor) -> Tensor:
+        """sigma (N,) alone: the density closure the occupancy grid is updated from."""
+        return self.geometry(x_unit)[0]
+
+    def color(self, geo: Tensor, directions: Tensor) -> Tensor:
+        """rgb (N, 3) in (0, 1) from the geometry feature and the SH-encoded unit direction."""
+        return torch.sigmoid(self.color_mlp(torch.cat([geo, sh_basis(self.sh_degree, directions)], -1)))
+
+
+class NGPModel(Model):
+    def __init__(self, cfg: NGPConfig, scene: SceneInfo):
+        super().__init__()
+        self.cfg, self.scene = cfg, scene
+        self.register_buffer("aabb", scene.aabb.clone().float())
+        self.register_buffer("background", scene.background.clone().float())
+        self.field = NGPField(cfg)
+        self.occupancy = OccupancyGrid(cfg.occupancy_res)
+        diag = (self.aabb[1] - self.aabb[0]).norm().item()
+        self.step_size = diag / cfg.march_steps
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        mlp_params = [*self.field.density_mlp.parameters(), *self.field.color_mlp.parameters()]
+        self.optimizer = torch.optim.Adam(
+            [{"params": [self.field.grid.table], "weight_decay": 0.0},
+             {"params": mlp_params, "weight_decay": cfg.weight_decay}],
+            lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
+        )
+
+    # ---- geometry of the scene ----------------------------------------------------------------
+    def to_unit(self, points: Tensor) -> Tensor:
+        """World points (N, 3) -> the hash grid's / occupancy grid's unit cube."""
+        return scene_to_unit_cube(points, self.aabb, self.scene.unbounded)
+
+    def density(self, points: Tensor) -> Tensor:
+        sigma, _ = self.field.geometry(self.to_unit(points))
+        return sigma
+
+    def _march(self, origins: Tensor, directions: Tensor, jitter: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """Packed occupied samples (ray_indices, t_starts, t_ends), terminated at T < eps by a
+        gradient-free density pre-pass."""
+        t_min, t_max = ray_bounds(self.scene, origins, directions)
+        u = uniform((origins.shape[0],), t_min, self.generator) if jitter else None
+        cone = self.cfg.cone_angle if self.scene.unbounded else 0.0
+        with torch.no_grad():
+            ri, t0, t1 = self.occupancy.sample(origins, directions, t_min, t_max, self.to_unit,
+                                               self.step_size, cone, u)
+            x = origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri]
+            sigma, _ = self.field.geometry(self.to_unit(x))
+            keep = terminated_mask(sigma, t0, t1, ri, self.cfg.eps_transmittance)
+        return ri[keep], t0[keep], t1[keep]
+
+    def _render_rays(self, origins: Tensor, directions: Tensor, jitter: bool):
+        """-> (VolumeRender of the rays, number of samples)."""
+        ri, t0, t1 = self._march(origins, directions, jitter)
+        x = origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri]
+        sigma, geo = self.field.geometry(self.to_unit(x))
+        rgb = self.field.color(geo, directions[ri])
+        out = volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background)
+        return out, ri.shape[0]
+
+    # ---- Model interface ---------------------------------------------------------------------
+    def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+        cfg = self.cfg
+        if step % cfg.occupancy_every == 0:
+            self.occupancy.update(self.field.sigma, self.step_size, step < cfg.occupancy_warmup,
+                                  cfg.occupancy_decay, cfg.occupancy_threshold, generator=self.generator)
+        set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
+        batch = sample_rays(data.rays(), cfg.rays_per_batch, self.generator)
+        out, n_samples = self._render_rays(batch["origins"], batch["directions"], jitter=True)
+        loss = torch.mean((out.rgb - batch["rgb"]) ** 2)
+        self.optimizer.zero_grad(set_to_none=True)
+        if loss.requires_grad:  # no sample at all (every ray missed): nothing to learn
+            loss.backward()
+            self.optimizer.step()
+        mse = loss.item()
+        return {"loss": mse, "psnr": psnr(mse), "samples_per_ray": n_samples / cfg.rays_per_batch,
+                "occupied": self.occupancy.occupancy_fraction()}
+
+    @torch.no_grad()
+    def render(self, camera: Cameras) -> dict[str, Tensor]:
+        def rays_fn(o: Tensor, d: Tensor):
+            out, _ = self._render_rays(o, d, jitter=False)
+            return out.rgb, out.depth, out.acc
+
+        return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
+
+    def training_state(self) -> dict:
+        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state()}
+
+    def load_training_state(self, state: dict) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+
+    def stats(self) -> dict[str, float]:
+        return {"parameters": float(sum(p.numel() for p in self.parameters())),
+                "occupied_fraction": self.occupancy.occupancy_fraction()}
+
+
+def build(config: NGPConfig, scene: SceneInfo) -> NGPModel:
+    return NGPModel(config, scene)
+
+
+SPEC = register(MethodSpec(name="ngp", config_cls=NGPConfig, build=build, presets=PRESETS))

@@ -1,0 +1,103 @@
+"""Helpers shared by the volume models (nerf, ngp): ray batches, image rendering in chunks,
+small MLPs, the truncated exponential and scene bounds. No rendering maths lives here (that is
+`recon.volrend`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from recon.cameras import Cameras, camera_rays
+from recon.models.base import SceneInfo
+from recon.volrend import ray_aabb_intersect
+
+# render_rays(origins (R, 3), directions (R, 3)) -> (rgb (R, 3), expected t (R,), acc (R,))
+RenderRaysFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
+
+
+def sample_rays(rays: dict[str, Tensor], n: int, generator: torch.Generator) -> dict[str, Tensor]:
+    """n rays drawn uniformly with replacement from the packed training-ray table."""
+    total = rays["rgb"].shape[0]
+    idx = torch.randint(0, total, (n,), generator=generator).to(rays["rgb"].device)
+    return {k: v[idx] for k, v in rays.items()}
+
+
+@torch.no_grad()
+def render_image(render_rays: RenderRaysFn, camera: Cameras, chunk: int) -> dict[str, Tensor]:
+    """Render camera 0 of `camera` ray chunk by ray chunk.
+
+    Returns rgb (H, W, 3), depth (H, W) = z-depth along the optical axis of the expected hit,
+    (sum_i w_i t_i / acc) * z_per_t where acc > 0 (0 elsewhere), and acc (H, W).
+    """
+    origins, directions, z_per_t = camera_rays(camera, 0)
+    H, W = z_per_t.shape
+    o, d = origins.reshape(-1, 3).float(), directions.reshape(-1, 3).float()
+    parts = [render_rays(o[i:i + chunk], d[i:i + chunk]) for i in range(0, o.shape[0], chunk)]
+    rgb, t, acc = (torch.cat(p) for p in zip(*parts))
+    depth_t = torch.where(acc > 0, t / acc.clamp_min(1e-10), torch.zeros_like(t))
+    depth = depth_t * z_per_t.reshape(-1).to(t)
+    return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
+
+
+def ray_bounds(scene: SceneInfo, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+    """(t_min, t_max) per ray: the scene box clipped to [near, far] for a bounded scene (rays
+    that miss get t_min = t_max, i.e. no samples), [near, far] for an unbounded one."""
+    R = origins.shape[0]
+    near = torch.full((R,), scene.near, device=origins.device, dtype=origins.dtype)
+    far = torch.full((R,), scene.far, device=origins.device, dtype=origins.dtype)
+    if scene.unbounded:
+        return near, far
+    t0, t1, hit = ray_aabb_intersect(origins, directions, scene.aabb.to(origins))
+    t0, t1 = torch.maximum(t0, near), torch.minimum(t1, far)
+    t1 = torch.where(hit & (t1 > t0), t1, t0)
+    return t0, t1
+
+
+def mlp(in_dim: int, width: int, n_hidden: int, out_dim: int) -> nn.Sequential:
+    """in -> [Linear(width) -> ReLU] x n_hidden -> Linear(out)."""
+    layers: list[nn.Module] = []
+    d = in_dim
+    for _ in range(n_hidden):
+        layers += [nn.Linear(d, width), nn.ReLU()]
+        d = width
+    layers.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*layers)
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp(x) forward; backward uses exp(min(x, 15)) so one huge activation cannot explode the
+    step (the Instant-NGP / torch-ngp density activation)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor) -> Tensor:
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> Tensor:
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(max=15.0))
+
+
+def trunc_exp(x: Tensor) -> Tensor:
+    """sigma = exp(x) with the gradient clamped at x = 15 (see `_TruncExp`)."""
+    return _TruncExp.apply(x)
+
+
+def psnr(mse: float) -> float:
+    """-10 log10(MSE) for images in [0, 1]."""
+    return -10.0 * math.log10(max(mse, 1e-10))
+
+
+def exp_decay_lr(step: int, lr: float, lr_final: float, decay_steps: int) -> float:
+    """lr * (lr_final / lr)^(step / decay_steps), held at lr_final afterwards."""
+    frac = min(step / max(decay_steps, 1), 1.0)
+    return lr * (lr_final / lr) ** frac
+
+
+def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
