@@ -9,7 +9,8 @@ import torch
 
 from recon.cameras.conventions import rotation_from_quat_wxyz
 from recon.fields.sh import C0
-from recon.gaussians.projection import (conic_from_cov2d, covariance_3d, ewa_covariance_2d,
+from recon.gaussians.projection import (conic_from_cov2d, covariance_3d, covariance_factor,
+                                        ewa_covariance_2d,
                                         project_gaussians, radius_3sigma, rotation_from_quats,
                                         sh_colors)
 
@@ -32,7 +33,7 @@ def test_problem5_covariances_eigenvalues_and_weight():
     Sigma = covariance_3d(quat, log_scales)[0]
     expected = torch.tensor([[0.00813, 0.00325, 0], [0.00325, 0.00438, 0], [0, 0, 0.04]], dtype=F64)
     assert torch.allclose(Sigma, expected, atol=1e-5)
-    cov2d = ewa_covariance_2d(mean, Sigma[None], K, 2000, 2000)[0]
+    cov2d = ewa_covariance_2d(mean, covariance_factor(quat, log_scales), K, 2000, 2000)[0]
     a, b, c = cov2d.tolist()
     assert (a - 0.3, b, c - 0.3) == pytest.approx((3000.94, 755.28, 1473.47), abs=0.01)
     eig = torch.linalg.eigvalsh(torch.tensor([[a, b], [b, c]], dtype=F64))
@@ -53,6 +54,12 @@ def test_problem5_through_project_gaussians():
     assert means2d[0].tolist() == pytest.approx([1111 * 0.2 + 1000, -1111 * 0.1 + 1000])
     assert float(depths[0]) == 2.0
     assert float(radii[0]) == math.ceil(3 * math.sqrt(3311.6))  # 173 px, the seed's extent
+
+
+def test_covariance_is_the_product_of_its_factor():
+    q, log_s = torch.randn(5, 4, dtype=F64), torch.randn(5, 3, dtype=F64)
+    M = covariance_factor(q, log_s)
+    assert torch.allclose(covariance_3d(q, log_s), M @ M.transpose(-1, -2))
 
 
 def test_rotation_matches_colmap_convention_and_is_orthonormal():
@@ -90,7 +97,7 @@ def test_ewa_matches_autograd_jacobian_of_the_projection():
     points = torch.randn(6, 3, dtype=F64) * 0.3 + torch.tensor([0, 0, 3.0], dtype=F64)
     L = torch.randn(6, 3, 3, dtype=F64) * 0.1
     Sigma = L @ L.transpose(-1, -2)
-    cov2d = ewa_covariance_2d(points, Sigma, K, 320, 240)
+    cov2d = ewa_covariance_2d(points, L, K, 320, 240)
 
     def pixel(p):
         return torch.stack([K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2]])
@@ -103,7 +110,7 @@ def test_ewa_matches_autograd_jacobian_of_the_projection():
 
 def test_guard_band_clamps_x_over_z_to_1_3_times_the_frustum():
     K = torch.tensor([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]], dtype=F64)
-    Sigma = torch.diag(torch.tensor([0.01, 0.02, 0.03], dtype=F64))[None]
+    Sigma = torch.diag(torch.tensor([0.1, 0.2, 0.3], dtype=F64))[None]  # a factor of the cov
     far_out = torch.tensor([[10.0, 0.0, 2.0]], dtype=F64)  # x/z = 5, the limit is 0.5 * 1.3
     on_edge = torch.tensor([[0.65 * 2.0, 0.0, 2.0]], dtype=F64)
     assert torch.allclose(ewa_covariance_2d(far_out, Sigma, K, 100, 100),

@@ -27,7 +27,8 @@ def random_gaussians(G, seed=0, degree=3):
         "quats": torch.randn(G, 4, generator=gen, dtype=F64),
         "log_scales": torch.log(0.05 + 0.25 * torch.rand(G, 3, generator=gen, dtype=F64)),
         "opacity_logits": torch.randn(G, generator=gen, dtype=F64) * 2,
-        "sh": torch.randn(G, (degree + 1) ** 2, 3, generator=gen, dtype=F64) * 0.3,
+        "sh_dc": torch.randn(G, 1, 3, generator=gen, dtype=F64) * 0.3,
+        "sh_rest": torch.randn(G, (degree + 1) ** 2 - 1, 3, generator=gen, dtype=F64) * 0.3,
     }
 
 
@@ -62,7 +63,7 @@ def test_depth_channel_is_expected_z_and_acc_normalizes_it():
          "quats": torch.tensor([[1.0, 0, 0, 0]], dtype=F64),
          "log_scales": torch.full((1, 3), math.log(0.5), dtype=F64),
          "opacity_logits": torch.tensor([4.0], dtype=F64),
-         "sh": torch.zeros(1, 1, 3, dtype=F64)}
+         "sh_dc": torch.zeros(1, 1, 3, dtype=F64), "sh_rest": torch.zeros(1, 0, 3, dtype=F64)}
     s = project_splats(g, cam, 0)
     out = composite_rgbd(s, torch.tensor([1.0, 0.0, 0.0], dtype=F64))
     acc = out["acc"]

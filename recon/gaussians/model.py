@@ -135,15 +135,9 @@ class GaussianModel(Model):
     def num_gaussians(self) -> int:
         return self.params["means"].shape[0]
 
-    def gaussians(self, sh_degree: int) -> dict[str, Tensor]:
-        """The attribute tensors `render.project_splats` takes, SH cut to `sh_degree` (so unused
-        coefficients get no gradient and Adam skips them while the degree is 0)."""
-        p = self.params
-        sh = p["sh_dc"]
-        if sh_degree > 0:
-            sh = torch.cat([sh, p["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
-        return {"means": p["means"], "quats": p["quats"], "log_scales": p["log_scales"],
-                "opacity_logits": p["opacity_logits"], "sh": sh}
+    def gaussians(self) -> dict[str, Tensor]:
+        """The attribute tensors `render.project_splats` takes."""
+        return dict(self.params.items())
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         c = self.config
@@ -156,8 +150,8 @@ class GaussianModel(Model):
         self.active_sh_degree.fill_(min(c.sh_degree, step // max(c.sh_degree_interval, 1)))
         set_lr(self.optimizer, "means", means_lr(c, step, extent))
         view = view_for_step(step, len(data), c.seed)
-        splats = project_splats(self.gaussians(int(self.active_sh_degree)), data.cameras[view],
-                                int(self.active_sh_degree), c.near_plane)
+        splats = project_splats(self.gaussians(), data.cameras[view], int(self.active_sh_degree),
+                                c.near_plane)
         splats.means2d.retain_grad()
         rgb, _ = composite_rgb(splats, self.background)
         target = data.images[view]
@@ -180,8 +174,8 @@ class GaussianModel(Model):
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         """rgb (H, W, 3), depth (H, W) = expected z / acc where acc > 0 (else 0), acc (H, W)."""
         degree = int(self.active_sh_degree)
-        splats = project_splats(self.gaussians(degree), camera.to(self.params["means"].device),
-                                degree, self.config.near_plane)
+        splats = project_splats(self.gaussians(), camera.to(self.params["means"].device), degree,
+                                self.config.near_plane)
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
         depth = torch.where(acc > 0, out["depth"] / acc.clamp_min(1e-10), torch.zeros_like(acc))

@@ -2,7 +2,8 @@
 rgb over a background, expected z-depth and accumulated opacity.
 
 `gaussians` is any mapping with the model's attribute tensors: means (G, 3), quats (G, 4),
-log_scales (G, 3), opacity_logits (G,), sh (G, K, 3) with K >= (degree + 1)^2.
+log_scales (G, 3), opacity_logits (G,), sh_dc (G, 1, 3), sh_rest (G, R, 3) with
+R >= (degree + 1)^2 - 1.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import torch
 from torch import Tensor
 
 from recon.cameras import Cameras
+from recon.gaussians.project_fused import project_fused
 from recon.gaussians.projection import project_gaussians, sh_colors
 from recon.gaussians.rasterize import rasterize_features
 
@@ -36,15 +38,33 @@ class ProjectedSplats:
 def project_splats(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int,
                    near: float = 0.01) -> ProjectedSplats:
     """Project G Gaussians into the single camera `camera` (len 1), colours from SH of
-    `sh_degree` seen from its centre, opacity = sigmoid(logit)."""
+    `sh_degree` seen from its centre, opacity = sigmoid(logit). CPU tensors take the fused
+    numba pass (`project_fused`), other devices its pure-torch twin (`project_splats_torch`)."""
+    if gaussians["means"].device.type != "cpu":
+        return project_splats_torch(gaussians, camera, sh_degree, near)
+    g, dtype = gaussians, gaussians["means"].dtype
+    W, H = int(camera.width[0]), int(camera.height[0])
+    means2d, conics, depths, radii, colors = project_fused(
+        g["means"], g["quats"], g["log_scales"], g["sh_dc"], g["sh_rest"], sh_degree,
+        camera.K[0].to(dtype), camera.cam_from_world[0].to(dtype), W, H, near)
+    return ProjectedSplats(means2d, conics, depths, radii, torch.sigmoid(g["opacity_logits"]),
+                           colors, W, H)
+
+
+def project_splats_torch(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int,
+                         near: float = 0.01) -> ProjectedSplats:
+    """`project_splats` in vectorised torch with autograd (any device)."""
     dtype = gaussians["means"].dtype
     K, cam_from_world = camera.K[0].to(dtype), camera.cam_from_world[0].to(dtype)
     W, H = int(camera.width[0]), int(camera.height[0])
     means2d, conics, depths, radii = project_gaussians(
         gaussians["means"], gaussians["quats"], gaussians["log_scales"], K, cam_from_world, W, H,
         near)
+    sh = gaussians["sh_dc"]
+    if sh_degree > 0:
+        sh = torch.cat([sh, gaussians["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
     center = camera.centers[0].to(dtype)
-    colors = sh_colors(gaussians["means"], gaussians["sh"], sh_degree, center)
+    colors = sh_colors(gaussians["means"], sh, sh_degree, center)
     return ProjectedSplats(means2d, conics, depths, radii,
                            torch.sigmoid(gaussians["opacity_logits"]), colors, W, H)
 
