@@ -85,3 +85,41 @@ def sphere_scene(n_cams: int = 8, size: int = 24, radius: float = 0.5):
                      background=torch.ones(3), near=0.05, far=4.0)
     del invert_rigid
     return TrainData(torch.stack(images).float(), cams), info
+
+
+def write_sphere_dataset(root: Path, n_train: int = 12, n_test: int = 3, size: int = 32, radius: float = 0.5) -> Path:
+    """The analytic sphere as a Blender-style dataset on disk: RGBA PNGs, transforms_{train,test}.json
+    (OpenGL c2w), metric z-depth EXRs and the ground-truth mesh (`gt_mesh_path`)."""
+    import cv2
+    import torch
+    import trimesh
+
+    from recon.cameras import camera_rays
+    from recon.cameras.conventions import opengl_c2w_from_opencv_c2w
+    from recon.io.exr import write_depth_exr
+
+    data, _ = sphere_scene(n_cams=n_train + n_test, size=size, radius=radius)
+    root.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.icosphere(subdivisions=4, radius=radius).export(root / "mesh.ply")
+    f = float(data.cameras.K[0, 0, 0])
+    for split, ids in (("train", range(n_train)), ("test", range(n_train, n_train + n_test))):
+        (root / split).mkdir(exist_ok=True)
+        frames = []
+        for k, i in enumerate(ids):
+            o, d, z = camera_rays(data.cameras, i)
+            b = (o * d).sum(-1)
+            disc = b * b - ((o * o).sum(-1) - radius**2)
+            t = -b - torch.sqrt(disc.clamp_min(0))
+            hit = disc > 0
+            rgba = torch.cat([data.images[i], hit[..., None].float()], -1).numpy()
+            rgba[..., :3] = np.where(hit[..., None].numpy(), rgba[..., :3], 0)
+            bgra = cv2.cvtColor((rgba * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGBA2BGRA)
+            cv2.imwrite(str(root / split / f"r_{k}.png"), bgra)
+            write_depth_exr(root / split / f"r_{k}_depth.exr", torch.where(hit, t * z, 0).numpy().astype(np.float32))
+            c2w = opengl_c2w_from_opencv_c2w(data.cameras.world_from_cam[i].double().numpy())
+            frames.append({"file_path": f"./{split}/r_{k}", "depth_file_path": f"{split}/r_{k}_depth.exr",
+                           "transform_matrix": c2w.tolist()})
+        meta = {"fl_x": f, "fl_y": f, "cx": size / 2, "cy": size / 2, "w": size, "h": size,
+                "gt_mesh_path": "mesh.ply", "frames": frames}
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root

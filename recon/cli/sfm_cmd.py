@@ -99,11 +99,11 @@ def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale
                 report = _photo_sfm(images, ws, cfg, options, progress)
         else:
             if transforms is not None:
-                posed = read_transforms(transforms)
+                posed = read_transforms(transforms, holdout_every)
                 inputs = {"source": transforms}
                 record = {"source": "transforms", "path": str(transforms)}
             else:
-                posed = read_colmap(colmap_dir, colmap_images)
+                posed = read_colmap(colmap_dir, colmap_images, holdout_every)
                 inputs = {"source": colmap_dir}
                 record = {"source": "colmap", "path": str(colmap_dir)}
             image_dirs = sorted({f.path.parent for f in posed.frames})

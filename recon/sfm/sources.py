@@ -142,7 +142,7 @@ def _dedupe_names(frames: list[PosedImage]) -> None:
             f.name = f"{f.name}_{seen[key]}"
 
 
-def read_transforms(path: Path) -> PosedImages:
+def read_transforms(path: Path, holdout_every: int = 8) -> PosedImages:
     """A transforms*.json file, or a folder with transforms.json or transforms_{split}.json."""
     path = Path(path)
     if not path.exists():
@@ -153,20 +153,20 @@ def read_transforms(path: Path) -> PosedImages:
         if split_files:
             frames = [f for s, p in split_files.items() for f in _read_transforms_file(p, s)]
         elif (path / "transforms.json").exists():
-            return read_transforms(path / "transforms.json")
+            return read_transforms(path / "transforms.json", holdout_every)
         else:
             raise SourceError(f"{path} holds no transforms.json or transforms_<split>.json")
         gt_mesh = next((m for p in split_files.values() if (m := _gt_mesh(p))), None)
     else:
         frames = _read_transforms_file(path, None)
-        for f, s in zip(frames, holdout_split([f.name for f in frames])):
+        for f, s in zip(frames, holdout_split([f.name for f in frames], holdout_every)):
             f.split = s
         gt_mesh = _gt_mesh(path)
     _dedupe_names(frames)
     return PosedImages(frames, source=str(path), gt_mesh=gt_mesh)
 
 
-def read_colmap(model_dir: Path, images_dir: Path | None = None) -> PosedImages:
+def read_colmap(model_dir: Path, images_dir: Path | None = None, holdout_every: int = 8) -> PosedImages:
     """A COLMAP sparse model (text or binary). Images are looked up in `images_dir`, else in
     `model_dir/../images` or `model_dir/../../images` (COLMAP's usual layouts)."""
     import pycolmap
@@ -200,7 +200,7 @@ def read_colmap(model_dir: Path, images_dir: Path | None = None) -> PosedImages:
                                  np.linalg.inv(cam_from_world), ""))
     if not frames:
         raise SourceError(f"COLMAP model {model_dir} has no registered images")
-    for f, s in zip(frames, holdout_split([f.name for f in frames])):
+    for f, s in zip(frames, holdout_split([f.name for f in frames], holdout_every)):
         f.split = s
     _dedupe_names(frames)
     pts = rec.points3D
