@@ -19,6 +19,7 @@ from recon.cameras import Cameras, camera_rays
 from recon.fields.sh import C0, eval_sh, num_sh_bases
 from recon.fields.voxels import SparseVoxelGrid
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
+from recon.volrend.march_kernels import march_occupied
 from recon.volrend import OccupancyGrid, ray_aabb_intersect, scene_to_unit_cube, terminated_mask, volume_render
 
 
@@ -110,8 +111,13 @@ class PlenoxelModel(Model):
             t_min = t_min.clamp_min(self.scene.near)
             cone = self.cfg.cone_angle
         u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
-        ray_idx, t0, t1 = self.occupancy.sample(origins, dirs, t_min, t_max, self.to_unit,
-                                                self._step_t(), cone, u)
+        if origins.device.type == "cpu":  # numba twin of OccupancyGrid.sample
+            ray_idx, t0, t1 = march_occupied(origins, dirs, t_min, t_max, self.occupancy.occupied,
+                                             self.occupancy.resolution, self.aabb, self.scene.unbounded,
+                                             self._step_t(), cone, u)
+        else:
+            ray_idx, t0, t1 = self.occupancy.sample(origins, dirs, t_min, t_max, self.to_unit,
+                                                    self._step_t(), cone, u)
         if ray_idx.numel():
             with torch.no_grad():  # cheap density pre-pass for early termination
                 mids = 0.5 * (t0 + t1)

@@ -1,0 +1,130 @@
+"""Fast CPU twin of `OccupancyGrid.sample` (numba): march every ray at a fixed (or
+cone-growing) step and emit ONLY the intervals whose midpoint falls in an occupied cell,
+without materialising the dense list of all marching intervals first.
+
+The arithmetic mirrors `occupancy.march_intervals`, `contraction.scene_to_unit_cube` and
+`occupancy.cells_of` step for step; `tests/test_march_kernels.py` checks that both give the
+same packed samples.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+
+@numba.njit(cache=True, inline="always")
+def _warp(t, step, cone):
+    if cone <= 0.0:
+        return t / step
+    t_sw = step / cone
+    return min(t, t_sw) / step + math.log(max(t, t_sw) / t_sw) / cone
+
+
+@numba.njit(cache=True, inline="always")
+def _unwarp(s, step, cone):
+    if cone <= 0.0:
+        return s * step
+    t_sw = step / cone
+    s_sw = t_sw / step
+    if s <= s_sw:
+        return s * step
+    return t_sw * math.exp(max(s - s_sw, 0.0) * cone)
+
+
+@numba.njit(cache=True, inline="always")
+def _occupied(o, d, t, lo, hi, unbounded, occ, res):
+    """Cell test of the point o + t d, mapped to the unit cube as scene_to_unit_cube does."""
+    y0 = 2.0 * (o[0] + t * d[0] - lo[0]) / (hi[0] - lo[0]) - 1.0
+    y1 = 2.0 * (o[1] + t * d[1] - lo[1]) / (hi[1] - lo[1]) - 1.0
+    y2 = 2.0 * (o[2] + t * d[2] - lo[2]) / (hi[2] - lo[2]) - 1.0
+    if unbounded:
+        n = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+        if n > 1.0:
+            f = (2.0 - 1.0 / n) / n
+            y0, y1, y2 = y0 * f, y1 * f, y2 * f
+        x0, x1, x2 = 0.25 * y0 + 0.5, 0.25 * y1 + 0.5, 0.25 * y2 + 0.5
+    else:
+        x0, x1, x2 = 0.5 * y0 + 0.5, 0.5 * y1 + 0.5, 0.5 * y2 + 0.5
+    if x0 < 0.0 or x0 > 1.0 or x1 < 0.0 or x1 > 1.0 or x2 < 0.0 or x2 > 1.0:
+        return False
+    i = min(max(int(x0 * res), 0), res - 1)
+    j = min(max(int(x1 * res), 0), res - 1)
+    k = min(max(int(x2 * res), 0), res - 1)
+    return occ[i + res * (j + res * k)]
+
+
+@numba.njit(cache=True)
+def _march_ray(r, o, d, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, out_s, out_e, write):
+    """Count (write=False) or write the kept intervals of ray r; returns how many."""
+    if not t_max > t_min:
+        return 0
+    s_min, s_max = _warp(t_min, step, cone), _warp(t_max, step, cone)
+    count = int(math.ceil(max(s_max - s_min + u, 0.0)))
+    count = max(count, 1)
+    n = 0
+    for k in range(count):
+        start = t_min if k == 0 else _unwarp(s_min + k - u, step, cone)
+        end = min(_unwarp(s_min + k + 1.0 - u, step, cone), t_max)
+        if not end > start:
+            continue
+        if _occupied(o, d, 0.5 * (start + end), lo, hi, unbounded, occ, res):
+            if write:
+                out_s[n] = start
+                out_e[n] = end
+            n += 1
+    return n
+
+
+@numba.njit(parallel=True, cache=True)
+def _count(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, counts):
+    dummy = np.empty(0, dtype=origins.dtype)
+    for r in numba.prange(origins.shape[0]):
+        counts[r] = _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, u[r], lo, hi,
+                               unbounded, occ, res, dummy, dummy, False)
+
+
+@numba.njit(parallel=True, cache=True)
+def _fill(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, offsets,
+          ray_indices, starts, ends):
+    for r in numba.prange(origins.shape[0]):
+        a = offsets[r]
+        b = offsets[r + 1]
+        if b > a:
+            _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, u[r], lo, hi, unbounded,
+                       occ, res, starts[a:b], ends[a:b], True)
+            ray_indices[a:b] = r
+
+
+def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, occupied: Tensor,
+                   resolution: int, aabb: Tensor, unbounded: bool, step: float, cone_angle: float = 0.0,
+                   u: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Packed (ray_indices (N,), t_starts (N,), t_ends (N,)) of the occupied marching intervals.
+
+    origins, dirs: (R, 3) CPU float tensors; t_min, t_max: (R,); occupied: (res^3,) bool;
+    aabb: (2, 3) scene box; u: (R,) start offsets in [0, 1) or None.
+    """
+    dt = origins.dtype
+    o = origins.detach().contiguous().numpy()
+    d = dirs.detach().contiguous().numpy()
+    tmin = t_min.detach().to(dt).contiguous().numpy()
+    tmax = t_max.detach().to(dt).contiguous().numpy()
+    uu = (torch.zeros_like(t_min) if u is None else u).detach().to(dt).contiguous().numpy()
+    lo = aabb[0].detach().to(dt).contiguous().numpy()
+    hi = aabb[1].detach().to(dt).contiguous().numpy()
+    occ = occupied.contiguous().numpy()
+    counts = np.zeros(o.shape[0], dtype=np.int64)
+    _count(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution, counts)
+    offsets = np.zeros(o.shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    n = int(offsets[-1])
+    ray_indices = np.empty(n, dtype=np.int64)
+    starts = np.empty(n, dtype=o.dtype)
+    ends = np.empty(n, dtype=o.dtype)
+    _fill(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution,
+          offsets, ray_indices, starts, ends)
+    return torch.from_numpy(ray_indices), torch.from_numpy(starts), torch.from_numpy(ends)
