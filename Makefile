@@ -22,7 +22,7 @@ lint: install
 	$(BIN)/ruff check recon tests pipelines
 
 demo: install
-	$(MAKE) -C pipelines SCENE=sample METHOD=ngp all
+	$(MAKE) -C pipelines SCENE=sample METHOD=$(or $(METHOD),plenoxel) BUDGET=$(or $(BUDGET),90) all
 
 bench: install
 	$(BIN)/python pipelines/bench.py
