@@ -1,0 +1,134 @@
+"""`make bench`: the lego-200 protocol for every method at its default CPU settings with a fixed
+training-time budget, plus sfm on fox; results as JSON + a markdown table in bench/results/.
+
+Protocol lego-200: `recon sfm --from-transforms nerf_synthetic_lego_400 --downscale 2`
+(200x200, white background), train on the 100 train frames, test PSNR/SSIM/LPIPS on test
+frames 0, 8, ..., 192, 2 CPU threads, wall time excluding evaluation. Everything runs through
+the real `recon` CLI, as a user would.
+
+    python pipelines/bench.py [--methods 3dgs,ngp,plenoxel,nerf] [--budget-scale 1.0] [--skip-sfm]
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import click
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+BUDGETS = {"3dgs": 600, "ngp": 600, "plenoxel": 600, "nerf": 1800}  # seconds, lego-200 protocol
+
+
+def matmul_gflops(n: int = 1024, reps: int = 10) -> float:
+    """The machine's float32 matmul GFLOP/s on 2 threads, to compare results across machines."""
+    import torch
+
+    torch.set_num_threads(2)
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    t = time.perf_counter()
+    for _ in range(reps):
+        a @ b
+    return 2 * n**3 * reps / (time.perf_counter() - t) / 1e9
+
+
+def recon(*args: str) -> dict:
+    env = {**os.environ, "OMP_NUM_THREADS": "2"}
+    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args, "--json"], capture_output=True,
+                          text=True, env=env, cwd=ROOT)
+    if proc.returncode != 0:
+        raise RuntimeError(f"recon {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout)
+
+
+def bench_method(ws: Path, method: str, budget: float) -> dict:
+    train = recon("train", "-w", str(ws), "--method", method, "--time-budget", str(budget), "--threads", "2",
+                  "--eval-every", str(max(budget / 10, 15)), "--eval-views", "4", "--force")
+    ev = recon("eval", "-w", str(ws), "--run", method, "--every", "8")[method]
+    big = recon("render", "-w", str(ws), "--run", method, "--split", "test")
+    sp = ev["speed"]
+    return {
+        "method": method, "time_budget_s": budget, "steps": train["steps"],
+        "steps_per_s": sp["steps_per_s"], "test_psnr": ev["mean"]["psnr"], "test_ssim": ev["mean"]["ssim"],
+        "test_lpips": ev["mean"].get("lpips"), "time_to_psnr_s": sp["time_to_psnr_s"],
+        "render_ms_per_frame_200": ev["render_ms_per_frame"], "render_ms_all_test": big["ms_per_frame"],
+        "peak_rss_mb": sp["peak_rss_mb"], "parameters": sp["parameters"], "model_bytes": sp["model_bytes"],
+        "model_stats": train.get("model_stats"), "stop_reason": train["stop_reason"],
+        "psnr_curve": [(e["wall_s"], e["test_psnr"]) for e in _log(ws, method) if "test_psnr" in e],
+    }
+
+
+def _log(ws: Path, run: str) -> list[dict]:
+    p = ws / "runs" / run / "log.jsonl"
+    return [json.loads(ln) for ln in p.read_text().splitlines() if ln.strip()] if p.exists() else []
+
+
+def markdown(results: dict) -> str:
+    lines = [f"# recon benchmark {results['date']} on {results['machine']}",
+             f"matmul {results['matmul_gflops']:.1f} GFLOP/s (float32, 2 threads); load average at start "
+             f"{results['load_average']}", "",
+             "## lego-200", "",
+             "| method | budget s | steps | steps/s | PSNR | SSIM | LPIPS | t→25 dB s | render ms/frame | peak MB | params | model MB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results["lego-200"]:
+        if "error" in r:
+            lines.append(f"| {r['method']} | failed: {r['error'][:80]} |")
+            continue
+        lp = r["test_lpips"]
+        lines.append(" | ".join([
+            f"| {r['method']}", f"{r['time_budget_s']:.0f}", str(r["steps"]), f"{r['steps_per_s']:.2f}",
+            f"{r['test_psnr']:.2f}", f"{r['test_ssim']:.4f}", "–" if lp is None else f"{lp:.4f}",
+            str(r["time_to_psnr_s"].get("25")), f"{r['render_ms_per_frame_200']:.0f}", f"{r['peak_rss_mb']:.0f}",
+            str(int(r["parameters"] or 0)), f"{(r['model_bytes'] or 0) / 1e6:.1f} |"]))
+    sfm = results.get("sfm_fox")
+    if sfm:
+        lines += ["", "## sfm on fox (67 photos)", "", "```", json.dumps(sfm, indent=1)[:3000], "```"]
+    return "\n".join(lines) + "\n"
+
+
+@click.command()
+@click.option("--methods", default="3dgs,ngp,plenoxel,nerf", show_default=True)
+@click.option("--budget-scale", default=1.0, show_default=True, help="Scale every time budget (quick runs).")
+@click.option("--skip-sfm", is_flag=True)
+@click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
+def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str) -> None:
+    from recon.train.stage import import_methods
+
+    available = import_methods()
+    date = dt.date.today().isoformat()
+    machine = f"{socket.gethostname()}-{platform.machine()}-{os.cpu_count()}cpu"
+    results = {"date": date, "machine": machine, "matmul_gflops": matmul_gflops(),
+               "load_average": os.getloadavg(), "budget_scale": budget_scale, "lego-200": []}
+    ws = ROOT / "bench" / "work" / "lego-200"
+    recon("sfm", "--from-transforms", str(SHARED / "nerf_synthetic_lego_400"), "--downscale", "2", "-w", str(ws))
+    for m in [m for m in methods.split(",") if m in available]:
+        print(f"bench: {m} ...", file=sys.stderr, flush=True)
+        try:
+            results["lego-200"].append(bench_method(ws, m, BUDGETS[m] * budget_scale))
+        except RuntimeError as e:
+            results["lego-200"].append({"method": m, "error": str(e).splitlines()[-1]})
+    recon("eval", "-w", str(ws), "--every", "8")  # the speed-vs-error plot across methods
+    results["speed_vs_error_png"] = str(ws / "speed_vs_error.png")
+    if not skip_sfm:
+        out = Path(out_dir) / f"{date}-sfm-fox.json"
+        subprocess.run([sys.executable, str(ROOT / "pipelines" / "bench_sfm.py"), "--out", str(out)], check=True,
+                       cwd=ROOT)
+        results["sfm_fox"] = json.loads(out.read_text())
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{date}-{machine}.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / f"{date}-{machine}.md").write_text(markdown(results))
+    print(markdown(results))
+
+
+if __name__ == "__main__":
+    main()
