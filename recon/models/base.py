@@ -98,6 +98,13 @@ class Model(nn.Module):
     def load_training_state(self, state: dict) -> None:
         pass
 
+    def reseed(self, seed: int) -> None:
+        """Reseed every torch.Generator the model owns (after a rollback, retried steps must
+        not replay the batches that produced a non-finite loss)."""
+        for value in vars(self).values():
+            if isinstance(value, torch.Generator):
+                value.manual_seed(seed)
+
     def stats(self) -> dict[str, float]:
         """Size of the model as it stands (parameters, primitives, occupied voxels...)."""
         return {"parameters": sum(p.numel() for p in self.parameters())}

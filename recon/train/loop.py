@@ -57,11 +57,10 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
              checkpoint: Callable[[LoopState], None], progress=None) -> str:
     """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
 
-    A non-finite loss is never trained on silently: the step is rolled back to the last
-    checkpoint by the caller (raised as FloatingPointError after `max_bad` bad steps in a row).
+    A non-finite loss is never trained on silently: it raises FloatingPointError at once (the
+    optimizer may already have written NaNs into the parameters) and the caller rolls back.
     """
     model.train()
-    bad_in_a_row = 0
     total = cfg.steps or None
     while (reason := should_stop(cfg, st)) is None:
         if held_cams is not None and st.wall_s - st.last_eval_wall >= cfg.eval_every_s:
@@ -73,12 +72,8 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
         st.wall_s += time.perf_counter() - t0
         st.step += 1
         if not math.isfinite(stats.get("loss", 0.0)):
-            bad_in_a_row += 1
             log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_loss"})
-            if bad_in_a_row >= 3:
-                raise FloatingPointError(f"loss is not finite for 3 steps in a row at step {st.step}")
-            continue
-        bad_in_a_row = 0
+            raise FloatingPointError(f"the loss became {stats.get('loss')} at step {st.step}")
         if st.step % 10 == 0 or st.step == 1:
             log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
         if progress is not None:

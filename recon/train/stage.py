@@ -24,6 +24,7 @@ from recon.workspace.scene import Scene, load_images, load_scene, load_train_dat
 from recon.workspace.workspace import software_versions
 
 MODEL_FILE = "model.pt"
+MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
 
 
 def import_methods() -> dict[str, MethodSpec]:
@@ -173,9 +174,35 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
             "loop": {k: v for k, v in state.__dict__.items()}, "rng": torch.get_rng_state(),
         }, cfg.keep_checkpoints)
 
+    def rollback() -> LoopState:
+        """Reload the last good checkpoint after a non-finite loss; the RNG moves on, so the
+        retried steps see other rays / views."""
+        ck = load_latest_checkpoint(ckpt_dir, log_fn)
+        if ck is None:
+            raise FloatingPointError("the loss became non-finite before the first checkpoint; "
+                                     "lower the learning rates (see --list-options)")
+        model.load_state_dict(ck["model"])
+        model.load_training_state(ck["training"])
+        state = LoopState(**ck["loop"])
+        torch.manual_seed(cfg.seed + 7919 * (rollbacks + 1))
+        model.reseed(cfg.seed + 7919 * (rollbacks + 1))
+        log({"step": state.step, "wall_s": state.wall_s, "event": "rollback", "count": rollbacks + 1})
+        log_fn(f"non-finite loss: rolled back to step {state.step} (rollback {rollbacks + 1} of {MAX_ROLLBACKS})")
+        return state
+
+    checkpoint(st)  # a known-good state to roll back to
     previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    rollbacks = 0
     try:
-        reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress)
+        while True:
+            try:
+                reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress)
+                break
+            except FloatingPointError:
+                if rollbacks >= MAX_ROLLBACKS:
+                    raise
+                st = rollback()
+                rollbacks += 1
     except KeyboardInterrupt:
         checkpoint(st)
         log({"step": st.step, "wall_s": st.wall_s, "event": "interrupted"})
