@@ -12,16 +12,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import pytorch_msssim
 import torch
 from torch import Tensor, nn
+from torch.profiler import record_function
 
 from recon.cameras import Cameras
 from recon.gaussians import densify
 from recon.gaussians.init import initial_gaussians
 from recon.gaussians.optim import make_adam, set_lr
 from recon.gaussians.ply import write_splat_ply
-from recon.gaussians.render import composite_rgb, composite_rgbd, project_splats
+from recon.gaussians.ssim import ssim
+from recon.gaussians.render import (ProjectedSplats, composite_rgb, composite_rgbd,
+                                    project_splats)
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
 
 
@@ -70,13 +72,13 @@ PRESETS = {
 
 def photometric_loss(rgb: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
     """(1 - lambda) |rgb - target|_1 + lambda (1 - SSIM(rgb, target)), SSIM with the 11x11
-    Gaussian window, sigma 1.5 (pytorch_msssim: separable, valid windows). (H, W, 3) -> ()."""
+    Gaussian window, sigma 1.5, valid windows (`ssim.py`, the twin of pytorch_msssim).
+    (H, W, 3) -> ()."""
     l1 = (rgb - target).abs().mean()
     if ssim_weight == 0:
         return l1
-    x, y = rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
-    ssim = pytorch_msssim.ssim(x, y, data_range=1.0, size_average=True)
-    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim)
+    s = ssim(rgb.permute(2, 0, 1), target.permute(2, 0, 1))
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - s)
 
 
 def camera_extent(cameras: Cameras) -> float:
@@ -140,6 +142,34 @@ class GaussianModel(Model):
         return dict(self.params.items())
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+        """One view, full resolution. The `3dgs.*` profiler labels split the step's time (see
+        `bench.py`)."""
+        c = self.config
+        extent = self._prepare_step(data, step)
+        view = view_for_step(step, len(data), c.seed)
+        with record_function("3dgs.project"):
+            splats = project_splats(self.gaussians(), data.cameras[view],
+                                    int(self.active_sh_degree), c.near_plane)
+        splats.means2d.retain_grad()
+        with record_function("3dgs.rasterize"):
+            rgb, _ = composite_rgb(splats, self.background)
+        target = data.images[view]
+        with record_function("3dgs.loss"):
+            loss = photometric_loss(rgb, target, c.ssim_weight)
+        self.optimizer.zero_grad(set_to_none=True)
+        with record_function("3dgs.backward"):
+            loss.backward()
+        with record_function("3dgs.optimizer"):
+            self.optimizer.step()
+        with record_function("3dgs.densify"):
+            self._densify(splats, step, extent)
+        with torch.no_grad():
+            mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
+        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-10)),
+                "num_gaussians": float(self.num_gaussians)}
+
+    def _prepare_step(self, data: TrainData, step: int) -> float:
+        """Scene extent (from the training cameras, once), SH degree and means lr for `step`."""
         c = self.config
         if float(self.scene_extent) == 0.0:
             self.scene_extent.fill_(camera_extent(data.cameras))
@@ -149,26 +179,16 @@ class GaussianModel(Model):
             self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
         self.active_sh_degree.fill_(min(c.sh_degree, step // max(c.sh_degree_interval, 1)))
         set_lr(self.optimizer, "means", means_lr(c, step, extent))
-        view = view_for_step(step, len(data), c.seed)
-        splats = project_splats(self.gaussians(), data.cameras[view], int(self.active_sh_degree),
-                                c.near_plane)
-        splats.means2d.retain_grad()
-        rgb, _ = composite_rgb(splats, self.background)
-        target = data.images[view]
-        loss = photometric_loss(rgb, target, c.ssim_weight)
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        return extent
+
+    def _densify(self, splats: ProjectedSplats, step: int, extent: float) -> None:
         if step + 1 < self.strategy.stop:
             densify.accumulate(self.densify_state, splats.means2d.grad, splats.radii,
                                splats.width, splats.height)
-        self.optimizer.step()
-        gen = torch.Generator(device=device).manual_seed(c.seed + 7919 * step)
+        gen = torch.Generator(device=self.params["means"].device)
+        gen.manual_seed(self.config.seed + 7919 * step)
         self.densify_state = densify.post_step(self.strategy, self.params, self.optimizer,
                                                self.densify_state, step, extent, gen)
-        with torch.no_grad():
-            mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
-        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-10)),
-                "num_gaussians": float(self.num_gaussians)}
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:

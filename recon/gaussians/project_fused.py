@@ -21,6 +21,7 @@ import numba
 import numpy as np
 import torch
 from numba import prange
+from torch.profiler import record_function
 
 from recon.fields.sh import C0, C1, C2, C3
 from recon.gaussians.projection import DILATION, GUARD_BAND, QUAT_EPS
@@ -345,7 +346,8 @@ class _ProjectFused(torch.autograd.Function):
         arrays, degree, cam, intr, bounds, center, near = ctx.saved
         g_out = torch.cat([g_means2d, g_conics, g_depths[:, None], torch.zeros_like(g_depths)[:, None],
                            g_colors], 1).to(torch.from_numpy(arrays[0]).dtype).contiguous().numpy()
-        grads = _project_backward(*arrays, degree, cam, intr, bounds, center, near, g_out)
+        with record_function("3dgs.project_backward"):
+            grads = _project_backward(*arrays, degree, cam, intr, bounds, center, near, g_out)
         d_means, d_quats, d_scales, d_dc, d_rest = (torch.from_numpy(x) for x in grads)
         return d_means, d_quats, d_scales, d_dc, d_rest if degree > 0 else None, None, None, None
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from numba import prange
 from torch import Tensor
+from torch.profiler import record_function
 
 from recon.gaussians.tiles import TILE, bin_gaussians, tile_bounds
 
@@ -38,6 +39,7 @@ ALPHA_MAX = 0.99  # keeps 1 - alpha away from 0 so the backward can divide by it
 ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
 T_MIN = 1e-4  # early termination: a pixel stops before T would fall below this
 SLACK = 1e-3  # relative widening of the alpha >= 1/255 ellipse used to skip pixels
+RECUR_MAX_A = 4.0  # conic x-curvatures up to this use the exp recurrence (no overflow risk)
 GRAD_COLUMNS = 6  # d mean2d (2), d conic (3), d opacity (1), then d features (D)
 
 
@@ -89,9 +91,34 @@ def _col_range(mx, dy, B, ellipse, x0, x1):
 
 
 @numba.njit(cache=True)
+def _gauss_row(mx, dy, A, B, C, centers, px0, px1, recur, out):
+    """out[j] = exp(power) at columns px0 + j of the row at offset dy, 0 where power > 0.
+
+    With `recur` (positive definite, A <= RECUR_MAX_A) it uses the exact recurrence of a
+    quadratic exponent instead of one exp per pixel: stepping dx -> dx - 1 multiplies G by
+    r = exp(A dx - A/2 + B dy), and r by exp(-A). In float64; the backward calls this same
+    function, so both passes see bit-identical values."""
+    dx = float(mx - centers[px0])
+    dyf = float(dy)
+    if recur:
+        gauss = math.exp(-0.5 * (A * dx * dx + C * dyf * dyf) - B * dx * dyf)
+        ratio = math.exp(A * dx - 0.5 * A + B * dyf)
+        decay = math.exp(-float(A))
+        for j in range(px1 - px0):
+            out[j] = gauss
+            gauss *= ratio
+            ratio *= decay
+    else:
+        for j in range(px1 - px0):
+            d = float(mx - centers[px0 + j])
+            power = -0.5 * (A * d * d + C * dyf * dyf) - B * d * dyf
+            out[j] = math.exp(power) if power <= 0 else 0.0
+
+
+@numba.njit(cache=True)
 def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
                   height, tile, consts, centers, out_feat, out_T, out_last):
-    alpha_max, alpha_min, t_min, half, one = consts[0], consts[1], consts[2], consts[3], consts[4]
+    alpha_max, alpha_min, t_min, one = consts[0], consts[1], consts[2], consts[4]
     D = features.shape[1]
     tiles_x = (width + tile - 1) // tile
     x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
@@ -101,6 +128,7 @@ def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids
     acc = np.zeros((n_pix, D), features.dtype)
     last = np.full(n_pix, -1, np.int32)
     done = np.zeros(n_pix, np.bool_)
+    row = np.empty(tile)
     n_done = 0
     start = tile_start[t]
     for k in range(start, tile_start[t + 1]):
@@ -110,20 +138,19 @@ def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids
         if not o >= alpha_min:  # alpha <= o: never visible
             continue
         ellipse = _ellipse(A, B, C, o, alpha_min)
-        floor_pow = ellipse[0]
+        recur = ellipse[1] and A <= RECUR_MAX_A
         py0, py1 = _row_range(my, ellipse, y0, y1)
         for py in range(py0, py1):
             dy = my - centers[py]
             px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
+            if px1 <= px0:
+                continue
+            _gauss_row(mx, dy, A, B, C, centers, px0, px1, recur, row)
             for px in range(px0, px1):
                 p = (py - y0) * tw + (px - x0)
                 if done[p]:
                     continue
-                dx = mx - centers[px]
-                power = -half * (A * dx * dx + C * dy * dy) - B * dx * dy
-                if power > 0 or power < floor_pow:
-                    continue
-                alpha = min(alpha_max, o * math.exp(power))
+                alpha = min(alpha_max, o * row[px - px0])
                 if alpha < alpha_min:
                     continue
                 test_T = T[p] * (one - alpha)
@@ -173,6 +200,7 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
     g_T_final = np.empty(n_pix, features.dtype)  # dL/dT_final * T_final
     S = np.zeros((n_pix, D), features.dtype)
     g_f = np.empty(D, features.dtype)
+    row = np.empty(tile)
     max_last = -1
     for p in range(n_pix):
         py, px = y0 + p // tw, x0 + p % tw
@@ -189,33 +217,33 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
         if not o >= alpha_min:
             continue
         ellipse = _ellipse(A, B, C, o, alpha_min)
-        floor_pow = ellipse[0]
+        recur = ellipse[1] and A <= RECUR_MAX_A
         py0, py1 = _row_range(my, ellipse, y0, y1)
         g_mx = g_my = g_A = g_B = g_C = g_o = 0.0
         g_f[:] = 0.0
         for py in range(py0, py1):
             dy = my - centers[py]
             px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
+            if px1 <= px0:
+                continue
+            _gauss_row(mx, dy, A, B, C, centers, px0, px1, recur, row)
             for px in range(px0, px1):
                 p = (py - y0) * tw + (px - x0)
                 if last[p] < i:
                     continue
                 dx = mx - centers[px]
-                power = -half * (A * dx * dx + C * dy * dy) - B * dx * dy
-                if power > 0 or power < floor_pow:
-                    continue
-                gauss = math.exp(power)
+                gauss = row[px - px0]
                 o_gauss = o * gauss
                 alpha = min(alpha_max, o_gauss)
                 if alpha < alpha_min:
                     continue
-                one_minus = one - alpha
-                T[p] = T[p] / one_minus  # T_i, transmittance in front of splat i
+                inv_one_minus = one / (one - alpha)  # one division instead of D + 2
+                T[p] = T[p] * inv_one_minus  # T_i, transmittance in front of splat i
                 w = alpha * T[p]
-                g_alpha = -g_T_final[p] / one_minus
+                g_alpha = -g_T_final[p] * inv_one_minus
                 for c in range(D):
                     g_f[c] += g_feat[p, c] * w
-                    g_alpha += g_feat[p, c] * (T[p] * features[g, c] - S[p, c] / one_minus)
+                    g_alpha += g_feat[p, c] * (T[p] * features[g, c] - S[p, c] * inv_one_minus)
                     S[p, c] += w * features[g, c]
                 if o_gauss <= alpha_max:  # the 0.99 clamp passes no gradient
                     g_o += g_alpha * gauss
@@ -270,7 +298,8 @@ class _RasterizeFeatures(torch.autograd.Function):
         args = (_numpy(means2d, dt), _numpy(conics, dt), _numpy(opacities, dt),
                 _numpy(features, dt), tile_start.numpy(), gauss_ids.numpy(), width, height, TILE,
                 consts, centers)
-        image, T, last = _forward_kernel(*args)
+        with record_function("3dgs.raster_forward"):
+            image, T, last = _forward_kernel(*args)
         ctx.args, ctx.fwd = args, (T, last)
         ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype)
         return torch.from_numpy(image), torch.from_numpy(T)
@@ -278,9 +307,10 @@ class _RasterizeFeatures(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_image, grad_T):
         dt = torch.from_numpy(ctx.fwd[0][:0]).dtype
-        buffers = _backward_kernel(*ctx.args, *ctx.fwd, _numpy(grad_image, dt),
-                                   _numpy(grad_T, dt), numba.get_num_threads())
-        grads = torch.from_numpy(buffers).sum(0)
+        with record_function("3dgs.raster_backward"):
+            buffers = _backward_kernel(*ctx.args, *ctx.fwd, _numpy(grad_image, dt),
+                                       _numpy(grad_T, dt), numba.get_num_threads())
+            grads = torch.from_numpy(buffers).sum(0)
         d_means, d_conics, d_opac = ctx.in_dtypes
         return (grads[:, 0:2].to(d_means), grads[:, 2:5].to(d_conics), grads[:, 5].to(d_opac),
                 grads[:, GRAD_COLUMNS:], None, None, None, None)
@@ -300,8 +330,9 @@ def rasterize_features(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
 
         return rasterize_features_ref(means2d, conics, opacities, features, radii, depths,
                                       width, height)
-    bounds = tile_bounds(means2d, radii, width, height)
-    tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height)
+    with record_function("3dgs.bin"):
+        bounds = tile_bounds(means2d, radii, width, height)
+        tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height)
     return _RasterizeFeatures.apply(means2d, conics, opacities, features, tile_start, gauss_ids,
                                     width, height)
 

@@ -1,0 +1,150 @@
+"""Speed benchmark of the 3dgs CPU path (a measurement, not a test: it asserts nothing).
+
+    python -m recon.gaussians.bench --gaussians 50000 --sizes 200 800 --out bench_3dgs.json
+
+For each image size: render forward and forward+backward ms per frame (projection + SH +
+binning + rasterization), training steps/s of `GaussianModel.train_step` (SSIM loss, Adam, no
+densification so the count stays put), and where one training step's time goes, from the
+`3dgs.*` profiler labels the model and kernels carry. The scene: G Gaussians on a sphere
+shell (radius 0.8, scales from the point spacing) seen from an orbit at distance 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+
+import numba
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+from recon.cameras import Cameras
+from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
+from recon.gaussians.render import composite_rgb, composite_rgbd, project_splats
+from recon.models.base import SceneInfo, TrainData
+
+LABELS = ("project", "rasterize", "bin", "raster_forward", "loss", "backward", "raster_backward",
+          "project_backward", "optimizer", "densify")
+
+
+def shell_gaussians(G: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    """G Gaussians on a sphere shell with random orientations, colours and opacities."""
+    gen = torch.Generator().manual_seed(seed)
+    d = torch.randn(G, 3, generator=gen)
+    means = d / d.norm(dim=-1, keepdim=True) * (0.8 + 0.05 * torch.rand(G, 1, generator=gen))
+    spacing = math.sqrt(4 * math.pi * 0.8**2 / G)  # mean distance between neighbours
+    return {"means": means, "quats": torch.randn(G, 4, generator=gen),
+            "log_scales": torch.log(spacing * (0.5 + torch.rand(G, 3, generator=gen))),
+            "opacity_logits": torch.randn(G, generator=gen) + 1.0,
+            "sh_dc": torch.randn(G, 1, 3, generator=gen) * 0.5,
+            "sh_rest": torch.randn(G, 15, 3, generator=gen) * 0.05}
+
+
+def orbit_cameras(n: int, size: int, radius: float = 3.0) -> Cameras:
+    """n cameras on a circle around the origin, looking at it (OpenCV axes, world z up)."""
+    cfw = torch.zeros(n, 4, 4, dtype=torch.float64)
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        eye = torch.tensor([radius * math.cos(a), radius * math.sin(a), 0.5], dtype=torch.float64)
+        forward = -eye / eye.norm()
+        right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+        right = right / right.norm()
+        R = torch.stack([right, torch.linalg.cross(forward, right), forward])
+        cfw[i, :3, :3], cfw[i, :3, 3], cfw[i, 3, 3] = R, -R @ eye, 1.0
+    K = torch.tensor([[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]],
+                     dtype=torch.float64).expand(n, 3, 3).clone()
+    wh = torch.full((n,), size)
+    return Cameras(K, cfw, wh, wh.clone())
+
+
+def median_ms(fn, reps: int) -> float:
+    fn()  # warm-up (numba compile or cache load)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000 * statistics.median(times)
+
+
+def bench_render(gaussians: dict, camera: Cameras, reps: int) -> dict[str, float]:
+    """Forward (rgb + depth, no grad) and forward+backward (rgb, sum loss) ms per frame."""
+    params = {k: v.clone().requires_grad_() for k, v in gaussians.items()}
+    bg = torch.zeros(3)
+
+    def forward():
+        with torch.no_grad():
+            composite_rgbd(project_splats(params, camera, 3), bg)
+
+    def forward_backward():
+        rgb, _ = composite_rgb(project_splats(params, camera, 3), bg)
+        rgb.sum().backward()
+
+    return {"forward_ms": median_ms(forward, reps),
+            "forward_backward_ms": median_ms(forward_backward, reps)}
+
+
+def training_setup(gaussians: dict, cameras: Cameras) -> tuple[GaussianModel, TrainData]:
+    with torch.no_grad():
+        images = torch.stack([composite_rgb(project_splats(gaussians, cameras[i], 3),
+                                            torch.zeros(3))[0] for i in range(len(cameras))])
+    G = gaussians["means"].shape[0]
+    gen = torch.Generator().manual_seed(1)
+    scene = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=False,
+                      background=torch.zeros(3), near=0.1, far=6.0,
+                      points=gaussians["means"] + 0.01 * torch.randn(G, 3, generator=gen),
+                      point_colors=torch.rand(G, 3, generator=gen))
+    config = GaussiansConfig(**{**PRESETS["fast"], "densify_start": 10**9, "sh_degree_interval": 1})
+    return GaussianModel(config, scene), TrainData(images.clamp(0, 1), cameras)
+
+
+def bench_training(gaussians: dict, cameras: Cameras, steps: int) -> dict:
+    """Steps/s of train_step at full SH degree, and its time split by `3dgs.*` labels (ms/step,
+    measured under the profiler, which adds a little overhead)."""
+    model, data = training_setup(gaussians, cameras)
+    for step in range(3):
+        model.train_step(data, step)
+    t0 = time.perf_counter()
+    for step in range(3, 3 + steps):
+        model.train_step(data, step)
+    steps_per_s = steps / (time.perf_counter() - t0)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for step in range(3 + steps, 3 + 2 * steps):
+            model.train_step(data, step)
+    totals = {e.key: e.cpu_time_total for e in prof.key_averages()}
+    split = {k: round(totals.get(f"3dgs.{k}", 0.0) / steps / 1000, 2) for k in LABELS}
+    split["backward_other"] = round(split["backward"] - split["raster_backward"]
+                                    - split["project_backward"], 2)
+    return {"steps_per_s": round(steps_per_s, 3), "ms_per_step_profiled": split,
+            "gaussians": model.num_gaussians}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--gaussians", type=int, default=50_000)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[200, 800])
+    parser.add_argument("--reps", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", default=None, help="also write the results to this JSON file")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    numba.set_num_threads(args.threads)
+    gaussians = shell_gaussians(args.gaussians)
+    results = {"gaussians": args.gaussians, "threads": args.threads, "sizes": {}}
+    for size in args.sizes:
+        cameras = orbit_cameras(8, size)
+        entry = bench_render(gaussians, cameras[0], args.reps)
+        entry.update(bench_training(gaussians, cameras, args.steps))
+        results["sizes"][str(size)] = entry
+        print(json.dumps({str(size): entry}), flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(results, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
