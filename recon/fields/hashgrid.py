@@ -87,18 +87,6 @@ def hash_encode_torch(x: Tensor, table: Tensor, layout: dict[str, list[int]]) ->
 
 
 @numba.njit(cache=True, inline="always")
-def _corner(i0x, i0y, i0z, c, n, dense, size):
-    """Flat-table row of corner c of cell (i0x, i0y, i0z) on a level of resolution n."""
-    cx, cy, cz = i0x + (c & 1), i0y + ((c >> 1) & 1), i0z + ((c >> 2) & 1)
-    if dense:
-        return cx + (n + 1) * (cy + (n + 1) * cz)
-    h = (cx * 1) ^ (cy * 2654435761) ^ (cz * 805459861)
-    if size & (size - 1) == 0:  # power of two: h mod T is a mask (h >= 0), no division
-        return h & (size - 1)
-    return h % size
-
-
-@numba.njit(cache=True, inline="always")
 def _cell(x, nf, n):
     """(i0, frac) of one coordinate x in [0, 1] on resolution n (nf = n in x's dtype, so the
     product rounds exactly as in `corner_indices_and_weights`)."""
@@ -107,40 +95,60 @@ def _cell(x, nf, n):
     return i0, pos - i0
 
 
+@numba.njit(cache=True, inline="always")
+def _fill_corners(x, p, n, nf, dn, sz, pow2, stride_y, stride_z, off, rows, ws):  # pragma: no cover
+    """rows[c], ws[c] for the 8 corners c = dx + 2 dy + 4 dz of point p's cell on one level.
+    Per-axis index terms are combined: dense  x + y (N+1) + z (N+1)^2,  hashed  x ^ y P2 ^ z P3."""
+    ix, fx = _cell(x[p, 0], nf, n)
+    iy, fy = _cell(x[p, 1], nf, n)
+    iz, fz = _cell(x[p, 2], nf, n)
+    c = 0
+    for dz in range(2):
+        wz = fz if dz else 1 - fz
+        tz = (iz + dz) * stride_z
+        for dy in range(2):
+            wyz = wz * (fy if dy else 1 - fy)
+            ty = (iy + dy) * stride_y
+            for dx in range(2):
+                ws[c] = wyz * (fx if dx else 1 - fx)
+                if dn:
+                    rows[c] = off + ix + dx + ty + tz
+                else:
+                    h = (ix + dx) ^ ty ^ tz
+                    rows[c] = off + (h & (sz - 1) if pow2 else h % sz)  # h >= 0: mask == mod
+                c += 1
+
+
 @numba.njit(parallel=True, cache=True)
-def _encode_kernel(x, table, res, resf, size, dense, offset, out):  # pragma: no cover - numba
-    # level-major: a thread streams all points through ONE level's slice of the table, which
-    # stays in cache; point-major order touches every level's slice per point (measured ~2x
-    # slower forward at T = 2^19)
+def _hash_kernel(x, table, feats, res, resf, size, dense, offset, backward):  # pragma: no cover
+    """forward:  feats[l, p, k] = sum_c w_c table[row_c, k]
+    backward: table[row_c, k] += w_c feats[l, p, k]   (table = the gradient buffer)
+
+    Level-major and parallel over levels: a thread streams every point through ONE level's
+    slice of the table (which stays in cache, and which no other thread writes, so the
+    backward scatter has no races); feats is (L, N, F) so each level reads/writes one
+    contiguous block instead of striding through every point's row.
+    """
     n_pts, n_levels, n_feat = x.shape[0], res.shape[0], table.shape[1]
     for lv in numba.prange(n_levels):
-        n, nf = res[lv], resf[lv]
+        n, nf, sz, off, dn = res[lv], resf[lv], size[lv], offset[lv], dense[lv]
+        stride_y = n + 1 if dn else np.int64(2654435761)
+        stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
+        pow2 = sz & (sz - 1) == 0
+        rows = np.empty(8, np.int64)  # per-thread scratch, reused for every point
+        ws = np.empty(8, x.dtype)
         for p in range(n_pts):
-            ix, fx = _cell(x[p, 0], nf, n)
-            iy, fy = _cell(x[p, 1], nf, n)
-            iz, fz = _cell(x[p, 2], nf, n)
-            for c in range(8):
-                w = (fx if c & 1 else 1 - fx) * (fy if c & 2 else 1 - fy) * (fz if c & 4 else 1 - fz)
-                row = offset[lv] + _corner(ix, iy, iz, c, n, dense[lv], size[lv])
-                for k in range(n_feat):
-                    out[p, lv * n_feat + k] += w * table[row, k]
-
-
-@numba.njit(parallel=True, cache=True)
-def _encode_backward_kernel(x, grad_out, res, resf, size, dense, offset, grad_table):  # pragma: no cover
-    # parallel over levels: each level owns a disjoint slice of the table, so no write races
-    n_pts, n_levels, n_feat = x.shape[0], res.shape[0], grad_table.shape[1]
-    for lv in numba.prange(n_levels):
-        n, nf = res[lv], resf[lv]
-        for p in range(n_pts):
-            ix, fx = _cell(x[p, 0], nf, n)
-            iy, fy = _cell(x[p, 1], nf, n)
-            iz, fz = _cell(x[p, 2], nf, n)
-            for c in range(8):
-                w = (fx if c & 1 else 1 - fx) * (fy if c & 2 else 1 - fy) * (fz if c & 4 else 1 - fz)
-                row = offset[lv] + _corner(ix, iy, iz, c, n, dense[lv], size[lv])
-                for k in range(n_feat):
-                    grad_table[row, k] += w * grad_out[p, lv * n_feat + k]
+            _fill_corners(x, p, n, nf, dn, sz, pow2, stride_y, stride_z, off, rows, ws)
+            for k in range(n_feat):
+                if backward:
+                    g = feats[lv, p, k]
+                    for c in range(8):
+                        table[rows[c], k] += ws[c] * g
+                else:
+                    acc = ws[0] * table[rows[0], k]
+                    for c in range(1, 8):
+                        acc += ws[c] * table[rows[c], k]
+                    feats[lv, p, k] = acc
 
 
 def _layout_arrays(layout: dict[str, list[int]]) -> tuple[np.ndarray, ...]:
@@ -157,21 +165,22 @@ class _HashEncodeCPU(torch.autograd.Function):
         res, size, offset, dense = _layout_arrays(layout)
         xs = x.detach().clamp(0.0, 1.0).contiguous()
         resf = res.astype(xs.numpy().dtype)
-        out = torch.zeros((x.shape[0], len(res) * table.shape[1]), dtype=table.dtype)
+        out = torch.zeros((len(res), x.shape[0], table.shape[1]), dtype=table.dtype)  # (L, N, F)
         tab = table.detach().contiguous().numpy()
-        _encode_kernel(xs.numpy(), tab, res, resf, size, dense, offset, out.numpy())
+        _hash_kernel(xs.numpy(), tab, out.numpy(), res, resf, size, dense, offset, False)
         ctx.save_for_backward(xs)
         ctx.layout, ctx.table_shape = layout, table.shape
-        return out
+        return out.permute(1, 0, 2).reshape(x.shape[0], -1)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
         (xs,) = ctx.saved_tensors
         res, size, offset, dense = _layout_arrays(ctx.layout)
         grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype)
-        g = grad_out.contiguous().numpy()
+        L, F = len(res), ctx.table_shape[1]
+        g = grad_out.reshape(-1, L, F).permute(1, 0, 2).contiguous().numpy()  # (L, N, F)
         resf = res.astype(xs.numpy().dtype)
-        _encode_backward_kernel(xs.numpy(), g, res, resf, size, dense, offset, grad_table.numpy())
+        _hash_kernel(xs.numpy(), grad_table.numpy(), g, res, resf, size, dense, offset, True)
         return None, grad_table, None
 
 

@@ -48,11 +48,11 @@ class NGPConfig:
     geo_features: int = 15  # geometry-feature channels passed from the density to the colour MLP
     sh_degree: int = 3  # SH degree of the view-direction encoding (3 = the paper's 16 coefficients)
     rays_per_batch: int = 1024  # rays per training step
-    march_steps: int = 512  # marching steps along the scene box diagonal (paper: 1024)
+    march_steps: int = 256  # marching steps along the scene box diagonal (paper: 1024)
     cone_angle: float = 1 / 256  # unbounded scenes only: step grows as t * cone_angle
     occupancy_res: int = 64  # occupancy grid resolution (paper: 128)
     occupancy_every: int = 16  # steps between occupancy-grid updates
-    occupancy_warmup: int = 256  # steps during which every cell is updated and kept occupied
+    occupancy_warmup: int = 64  # steps during which every cell is updated and kept occupied (paper: 256)
     occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
     occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities (paper: 0.95)
     eps_transmittance: float = 1e-4  # early ray termination threshold
@@ -68,7 +68,8 @@ class NGPConfig:
 PRESETS = {
     "fast": {},
     "paper": {"log2_table_size": 19, "n_max": 2048, "rays_per_batch": 4096, "march_steps": 1024,
-              "occupancy_res": 128, "occupancy_decay": 0.95, "lr_decay_steps": 20000, "default_steps": 35000, "chunk": 16384},
+              "occupancy_res": 128, "occupancy_decay": 0.95, "occupancy_warmup": 256,
+              "lr_decay_steps": 20000, "default_steps": 35000, "chunk": 16384},
 }
 
 
