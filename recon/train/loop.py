@@ -54,7 +54,8 @@ def should_stop(cfg: TrainConfig, st: LoopState) -> str | None:
 
 def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs: torch.Tensor | None,
              cfg: TrainConfig, st: LoopState, log: Callable[[dict], None],
-             checkpoint: Callable[[LoopState], None], progress=None) -> str:
+             checkpoint: Callable[[LoopState], None], progress=None,
+             interrupted: Callable[[], bool] = lambda: False) -> str:
     """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
 
     A non-finite loss is never trained on silently: it raises FloatingPointError at once (the
@@ -63,6 +64,8 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
     model.train()
     total = cfg.steps or None
     while (reason := should_stop(cfg, st)) is None:
+        if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
+            raise KeyboardInterrupt
         if held_cams is not None and st.wall_s - st.last_eval_wall >= cfg.eval_every_s:
             _evaluate(model, held_cams, held_imgs, cfg, st, log)
             if (reason := should_stop(cfg, st)) is not None:

@@ -191,12 +191,18 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         return state
 
     checkpoint(st)  # a known-good state to roll back to
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    stop = {"requested": False}
+
+    def request_stop(signum, frame):
+        stop["requested"] = True
+
+    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     rollbacks = 0
     try:
         while True:
             try:
-                reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress)
+                reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress,
+                                  interrupted=lambda: stop["requested"])
                 break
             except FloatingPointError:
                 if rollbacks >= MAX_ROLLBACKS:
@@ -212,7 +218,8 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
             f"interrupted at step {st.step}; checkpoint saved. Resume with: "
             f"recon train -w {ws.root} --run {run} --resume")
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     checkpoint(st)
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
     log_file.close()
@@ -230,10 +237,6 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
                     upstream=["sfm"], started=started, ended=time.time(),
                     extra={"stop_reason": reason, "steps": st.step})
     return summary
-
-
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 def _truncate_log(path: Path, step: int) -> None:
