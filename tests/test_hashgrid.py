@@ -137,3 +137,11 @@ def test_gradcheck_positions_and_table_float64():
     x = (torch.tensor([[0.113, 0.527, 0.801], [0.61, 0.29, 0.07]], dtype=torch.float64)).requires_grad_()
     assert torch.autograd.gradcheck(lambda p, t: hash_encode_torch(p, t, lay), (x, table))
     assert torch.autograd.gradcheck(lambda t: hash_encode(x.detach(), t, lay), (table,))
+
+
+def test_empty_batch(small_grid):
+    table = small_grid.table.detach().clone().requires_grad_()
+    out = hash_encode(torch.zeros(0, 3), table, small_grid.layout)
+    assert out.shape == (0, 12)
+    out.sum().backward()
+    assert (table.grad == 0).all()

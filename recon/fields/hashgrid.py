@@ -170,7 +170,7 @@ class _HashEncodeCPU(torch.autograd.Function):
         _hash_kernel(xs.numpy(), tab, out.numpy(), res, resf, size, dense, offset, False)
         ctx.save_for_backward(xs)
         ctx.layout, ctx.table_shape = layout, table.shape
-        return out.permute(1, 0, 2).reshape(x.shape[0], -1)
+        return out.permute(1, 0, 2).reshape(x.shape[0], len(res) * table.shape[1])
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
@@ -178,7 +178,7 @@ class _HashEncodeCPU(torch.autograd.Function):
         res, size, offset, dense = _layout_arrays(ctx.layout)
         grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype)
         L, F = len(res), ctx.table_shape[1]
-        g = grad_out.reshape(-1, L, F).permute(1, 0, 2).contiguous().numpy()  # (L, N, F)
+        g = grad_out.reshape(grad_out.shape[0], L, F).permute(1, 0, 2).contiguous().numpy()  # (L, N, F)
         resf = res.astype(xs.numpy().dtype)
         _hash_kernel(xs.numpy(), grad_table.numpy(), g, res, resf, size, dense, offset, True)
         return None, grad_table, None

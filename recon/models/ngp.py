@@ -124,28 +124,37 @@ class NGPModel(Model):
         sigma, _ = self.field.geometry(self.to_unit(points))
         return sigma
 
-    def _march(self, origins: Tensor, directions: Tensor, jitter: bool) -> tuple[Tensor, Tensor, Tensor]:
-        """Packed occupied samples (ray_indices, t_starts, t_ends), terminated at T < eps by a
-        gradient-free density pre-pass."""
+    def _occupied_samples(self, origins: Tensor, directions: Tensor, jitter: bool):
+        """Packed samples in occupied cells: (ray_indices, t_starts, t_ends, unit-cube midpoints)."""
         t_min, t_max = ray_bounds(self.scene, origins, directions)
         u = uniform((origins.shape[0],), t_min, self.generator) if jitter else None
         cone = self.cfg.cone_angle if self.scene.unbounded else 0.0
         with torch.no_grad():
             ri, t0, t1 = self.occupancy.sample(origins, directions, t_min, t_max, self.to_unit,
                                                self.step_size, cone, u)
-            x = origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri]
-            sigma, _ = self.field.geometry(self.to_unit(x))
-            keep = terminated_mask(sigma, t0, t1, ri, self.cfg.eps_transmittance)
-        return ri[keep], t0[keep], t1[keep]
+            x = self.to_unit(origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri])
+        return ri, t0, t1, x
 
-    def _render_rays(self, origins: Tensor, directions: Tensor, jitter: bool):
-        """-> (VolumeRender of the rays, number of samples)."""
-        ri, t0, t1 = self._march(origins, directions, jitter)
-        x = origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri]
-        sigma, geo = self.field.geometry(self.to_unit(x))
+    def _render_rays_train(self, origins: Tensor, directions: Tensor):
+        """Occupied samples, a gradient-free density pre-pass to drop those behind T < eps, then
+        the field with gradients on the survivors only. -> (VolumeRender, number of samples)."""
+        ri, t0, t1, x = self._occupied_samples(origins, directions, jitter=True)
+        with torch.no_grad():
+            keep = terminated_mask(self.field.sigma(x), t0, t1, ri, self.cfg.eps_transmittance)
+        ri, t0, t1, x = ri[keep], t0[keep], t1[keep], x[keep]
+        sigma, geo = self.field.geometry(x)
         rgb = self.field.color(geo, directions[ri])
-        out = volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background)
-        return out, ri.shape[0]
+        return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background), ri.shape[0]
+
+    @torch.no_grad()
+    def _render_rays_eval(self, origins: Tensor, directions: Tensor):
+        """Without gradients one density pass serves both: colour only where T >= eps."""
+        ri, t0, t1, x = self._occupied_samples(origins, directions, jitter=False)
+        sigma, geo = self.field.geometry(x)
+        keep = terminated_mask(sigma, t0, t1, ri, self.cfg.eps_transmittance)
+        ri, t0, t1, sigma = ri[keep], t0[keep], t1[keep], sigma[keep]
+        rgb = self.field.color(geo[keep], directions[ri])
+        return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background)
 
     # ---- Model interface ---------------------------------------------------------------------
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
@@ -155,7 +164,7 @@ class NGPModel(Model):
                                   cfg.occupancy_decay, cfg.occupancy_threshold, generator=self.generator)
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         batch = sample_rays(data.rays(), cfg.rays_per_batch, self.generator)
-        out, n_samples = self._render_rays(batch["origins"], batch["directions"], jitter=True)
+        out, n_samples = self._render_rays_train(batch["origins"], batch["directions"])
         loss = torch.mean((out.rgb - batch["rgb"]) ** 2)
         self.optimizer.zero_grad(set_to_none=True)
         if loss.requires_grad:  # no sample at all (every ray missed): nothing to learn
@@ -168,7 +177,7 @@ class NGPModel(Model):
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         def rays_fn(o: Tensor, d: Tensor):
-            out, _ = self._render_rays(o, d, jitter=False)
+            out = self._render_rays_eval(o, d)
             return out.rgb, out.depth, out.acc
 
         return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
