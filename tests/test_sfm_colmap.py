@@ -5,7 +5,6 @@ import json
 import subprocess
 import sys
 import textwrap
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +15,13 @@ from recon.cameras.conventions import opencv_c2w_from_opengl_c2w
 from recon.metrics.pose import pose_errors
 from recon.sfm import colmap_steps as steps
 from recon.sfm.colmap_diagnose import ImageMatchStats, unregistered_reason
+from recon.sfm.colmap_retry import retry_pairs
 from recon.sfm.colmap_sfm import (
     SfmConfig,
     SfmError,
     attempt_ladder,
     camera_groups,
+    extraction_key,
     run_sfm,
     validate_config,
 )
@@ -67,16 +68,25 @@ def test_attempt_ladder():
     assert [a.matcher for a in small] == ["exhaustive", "exhaustive", "exhaustive"]
     assert [a.guided_matching for a in small] == [False, False, True]
     assert small[1].max_num_features == 16384 and small[1].peak_threshold < small[0].peak_threshold
+    assert small[1].always_upsample and not small[0].always_upsample
     assert small[1].abs_pose_min_num_inliers < small[0].abs_pose_min_num_inliers
-    # Attempt 3 changes only the matching, so it reuses attempt 2's features.
-    assert replace(small[2], name="", matcher="", guided_matching=False) == replace(
-        small[1], name="", matcher="", guided_matching=False
-    )
+    # Attempt 3 changes only the matching, so it keeps attempt 2's features.
+    assert extraction_key(small[2]) == extraction_key(small[1]) != extraction_key(small[0])
     big = attempt_ladder(SfmConfig(), 150)
     assert [a.matcher for a in big] == ["sequential", "sequential", "exhaustive"]
-    assert len(attempt_ladder(SfmConfig(), 500)) == 2  # no exhaustive fallback for 500 photos
     assert len(attempt_ladder(SfmConfig(try_harder=False), 40)) == 1
     assert attempt_ladder(SfmConfig(matcher="sequential"), 40)[0].matcher == "sequential"
+
+
+def test_retry_pairs():
+    names = [f"{i:03d}.jpg" for i in range(8)]
+    pairs = retry_pairs(names, ["003.jpg"], all_pairs=False)
+    assert sorted(pairs) == sorted(tuple(sorted((n, "003.jpg"))) for n in names if n != "003.jpg")
+    assert len(retry_pairs(names, ["003.jpg"], all_pairs=True)) == 28
+    many = [f"{i:04d}.jpg" for i in range(400)]  # beyond 300: sequence neighbours only
+    near = retry_pairs(many, ["0205.jpg"], all_pairs=True)  # not a keyframe (every 10th)
+    assert ("0204.jpg", "0205.jpg") in near and ("0000.jpg", "0205.jpg") not in near
+    assert all("0205.jpg" in pair for pair in near) and len(near) < 60
 
 
 def test_validate_config_rejects_unknown_choices():
@@ -123,8 +133,8 @@ def test_camera_groups_split_mixed_sizes():
     photos = PhotoSet(
         (photo("a", 640, 480), photo("b", 480, 640), photo("c", 640, 480)), (), Path(".")
     )
-    assert camera_groups(photos, single_camera=True) == [["a", "c"], ["b"]]
-    assert camera_groups(photos, single_camera=False) == [["a"], ["b"], ["c"]]
+    assert camera_groups(photos, single_camera=True) == [(["a", "c"], 640), (["b"], 640)]
+    assert camera_groups(photos, single_camera=False) == [(["a"], 640), (["b"], 640), (["c"], 640)]
 
 
 def test_blank_photos_raise_one_line_sfm_error(tmp_path):
@@ -179,7 +189,8 @@ def test_fox_subset_with_an_unrelated_photo(tmp_path):
     assert [u["name"] for u in report["unregistered"]] == ["zz_noise.png"]
     assert "match" in report["unregistered"][0]["reason"]
     assert [a["registered"] for a in report["attempts"]] == [12, 12, 12]  # all 3 tried, none got 13
-    assert report["chosen_attempt"] == 1  # ties go to the first (fewer points would lose)
+    points = [a["points3d"] for a in report["attempts"]]
+    assert report["chosen_attempt"] == 1 + points.index(max(points))  # ties: most 3D points
     assert report["cameras"][0]["model"] == "PINHOLE"
     assert {im.name for im in result.reconstruction.images.values()} == {
         p.name for p in result.images_dir.iterdir()

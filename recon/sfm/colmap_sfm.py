@@ -14,12 +14,13 @@ import contextlib
 import shutil
 import time
 import zlib  # noqa: F401  (before pycolmap: importing pycolmap first corrupts zlib's heap)
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pycolmap
 
 from recon.sfm import colmap_diagnose as diagnose
+from recon.sfm import colmap_retry
 from recon.sfm import colmap_steps as steps
 from recon.sfm.colmap_report import build_report
 from recon.sfm.colmap_steps import AttemptOptions, Progress
@@ -28,7 +29,6 @@ from recon.sfm.photos import PhotoSet, prepare_photos
 MATCHERS = ("auto", "exhaustive", "sequential")
 MAPPERS = ("incremental", "global")
 AUTO_EXHAUSTIVE_MAX_IMAGES = 100  # exhaustive costs N^2/2 pairs; beyond this, sequential
-TRY_HARDER_EXHAUSTIVE_MAX_IMAGES = 300  # the third attempt's exhaustive matching stops here
 
 
 class SfmError(RuntimeError):
@@ -40,12 +40,14 @@ class SfmError(RuntimeError):
 class SfmConfig:
     """Options of `run_sfm` (one CLI flag each; the comment after a field is its help).
 
-    SIFT keypoints found on the downscaled image are rescaled to full resolution, so
-    `max_image_size` trades extraction time and small-detail features, not pose precision
-    directly. Matching cost grows with `max_num_features` squared per pair.
+    SIFT keypoints found on the downscaled image are rescaled to full resolution. At 1600 px
+    or more SIFT skips its 2x-upsampled first octave (4x cheaper, ~3000 keypoints per phone
+    photo); on the fox capture (67 photos 1080x1920) this matched the accuracy of 1200 px with
+    upsampling (0.12 deg, 0.09 % of the camera spread) for 60 % of the CPU time. Matching
+    cost grows with `max_num_features` squared per pair and with the number of pairs.
     """
 
-    max_image_size: int = 1200  # SIFT runs on photos downscaled to this longer side (px)
+    max_image_size: int = 1600  # SIFT runs on photos downscaled to this longer side (px)
     max_num_features: int = 4096  # SIFT keypoints kept per image
     matcher: str = "auto"  # auto | exhaustive | sequential (auto: exhaustive up to 100 photos)
     mapper: str = "incremental"  # incremental (COLMAP) | global (GLOMAP)
@@ -81,10 +83,11 @@ def validate_config(config: SfmConfig) -> None:
 
 
 def attempt_ladder(config: SfmConfig, num_images: int) -> list[AttemptOptions]:
-    """Attempt 1 uses the config; with `try_harder`, attempt 2 extracts 4x more features with
-    a lower SIFT peak threshold and relaxes the verification and registration thresholds,
-    attempt 3 keeps those features and switches matcher (exhaustive instead of sequential,
-    up to 300 images) with guided matching."""
+    """Attempt 1 uses the config. With `try_harder`, attempt 2 re-extracts the photos left out
+    with 4x more SIFT features, a lower peak threshold and 2x upsampling (finer, fainter
+    blobs), matches them against every photo and relaxes the verification and registration
+    thresholds; attempt 3 re-matches them with guided matching and, if attempt 1 matched
+    sequentially, matches all pairs (up to 300 photos). See `colmap_retry`."""
     matcher = config.matcher
     if matcher == "auto":
         matcher = "exhaustive" if num_images <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
@@ -93,6 +96,7 @@ def attempt_ladder(config: SfmConfig, num_images: int) -> list[AttemptOptions]:
         max_image_size=config.max_image_size,
         max_num_features=config.max_num_features,
         peak_threshold=steps.DEFAULT_PEAK_THRESHOLD,
+        always_upsample=False,
         matcher=matcher,
         guided_matching=False,
         min_num_inliers=15,
@@ -105,20 +109,18 @@ def attempt_ladder(config: SfmConfig, num_images: int) -> list[AttemptOptions]:
         return [first]
     second = replace(
         first,
-        name="more features, relaxed thresholds",
+        name="more features for the photos left out, relaxed thresholds",
         max_num_features=max(16384, 4 * config.max_num_features),
-        max_image_size=max(config.max_image_size, 1600),
         peak_threshold=0.004,
+        always_upsample=True,
         min_num_inliers=10,
         min_num_matches=10,
         init_min_num_inliers=50,
         abs_pose_min_num_inliers=15,
         abs_pose_min_inlier_ratio=0.15,
     )
-    if matcher == "sequential" and num_images > TRY_HARDER_EXHAUSTIVE_MAX_IMAGES:
-        return [first, second]
     third = replace(
-        second, name="exhaustive + guided matching", matcher="exhaustive", guided_matching=True
+        second, name="guided matching, all pairs", matcher="exhaustive", guided_matching=True
     )
     return [first, second, third]
 
@@ -155,6 +157,8 @@ class Attempt:
     directory: Path
     models: dict[int, pycolmap.Reconstruction]
     timer: PhaseTimer
+    retried: list[str] = field(default_factory=list)  # photos a retry re-extracted / re-matched
+    pairs_matched: int = 0  # image pairs sent to the matcher (already matched pairs are skipped)
 
     @property
     def best(self) -> pycolmap.Reconstruction | None:
@@ -172,43 +176,69 @@ class Attempt:
         return self.directory / "database.db"
 
 
-def camera_groups(photos: PhotoSet, single_camera: bool) -> list[list[str]]:
-    """Images sharing one camera: all photos of one size when `single_camera`, else one each."""
+def camera_groups(photos: PhotoSet, single_camera: bool) -> list[tuple[list[str], int]]:
+    """(names, longer side px) of the images sharing one camera: all photos of one size when
+    `single_camera`, else one group per photo."""
     if not single_camera:
-        return [[p.name] for p in photos.photos]
+        return [([p.name], max(p.width, p.height)) for p in photos.photos]
     groups: dict[tuple[int, int], list[str]] = {}
     for p in photos.photos:
         groups.setdefault((p.width, p.height), []).append(p.name)
-    return list(groups.values())
+    return [(names, max(size)) for size, names in groups.items()]
 
 
-def reuse_features(attempts: list[Attempt], options: AttemptOptions, database: Path) -> bool:
-    """Copy the database of an earlier attempt with the same extraction settings, minus its
-    matches, so a matcher-only change does not re-extract features."""
-    key = (options.max_image_size, options.max_num_features, options.peak_threshold)
-    for earlier in attempts:
-        o = earlier.options
-        if (o.max_image_size, o.max_num_features, o.peak_threshold) == key:
-            shutil.copyfile(earlier.database, database)
-            db = pycolmap.Database.open(database)
-            db.clear_matches()
-            db.clear_two_view_geometries()
-            db.close()
-            return True
-    return False
+def extraction_key(options: AttemptOptions) -> tuple:
+    return (
+        options.max_image_size,
+        options.max_num_features,
+        options.peak_threshold,
+        options.always_upsample,
+    )
+
+
+def prepare_retry(
+    attempt: Attempt,
+    previous: Attempt,
+    photos: PhotoSet,
+    groups: list[tuple[list[str], int]],
+    config: SfmConfig,
+    progress: Progress,
+) -> list[tuple[str, str]]:
+    """Start from the previous database; re-extract (or re-match) the photos it left out.
+    Returns the pairs to match."""
+    kept = diagnose.registered_names(previous.best) if previous.models else set()
+    retry = [n for n in photos.names if n not in kept]
+    attempt.retried, retry_set = retry, set(retry)
+    colmap_retry.copy_database(previous.database, attempt.database)
+    if extraction_key(attempt.options) != extraction_key(previous.options):
+        colmap_retry.forget_features(attempt.database, retry)
+        retry_groups = [([n for n in names if n in retry_set], side) for names, side in groups]
+        steps.extract_features(
+            attempt.database,
+            photos.staging_dir,
+            [g for g in retry_groups if g[0]],
+            attempt.options,
+            config.camera_model,
+            config.num_threads,
+            progress,
+        )
+    elif attempt.options.guided_matching and not previous.options.guided_matching:
+        colmap_retry.forget_matches(attempt.database, retry)
+    all_pairs = attempt.options.matcher == "exhaustive" and previous.options.matcher != "exhaustive"
+    return colmap_retry.retry_pairs(photos.names, retry, all_pairs)
 
 
 def run_attempt(
     options: AttemptOptions,
     index: int,
     photos: PhotoSet,
-    groups: list[list[str]],
+    groups: list[tuple[list[str], int]],
     work_dir: Path,
     config: SfmConfig,
-    earlier: list[Attempt],
+    previous: Attempt | None,
     progress: Progress,
 ) -> Attempt:
-    """Extract (or reuse) features, match, map: one rung of the ladder."""
+    """Extract features, match, map: one rung of the ladder (a retry when `previous`)."""
     directory = work_dir / f"attempt{index}"
     shutil.rmtree(directory, ignore_errors=True)
     directory.mkdir(parents=True)
@@ -218,28 +248,22 @@ def run_attempt(
     def report(phase: str, done: int, total: int) -> None:
         progress(phase + suffix, done, total)
 
-    threads, names = config.num_threads, photos.names
+    threads, names, db = config.num_threads, photos.names, attempt.database
     with attempt.timer("features"):
-        if not reuse_features(earlier, options, attempt.database):
+        if previous is not None:
+            pairs = prepare_retry(attempt, previous, photos, groups, config, report)
+        else:
             steps.extract_features(
-                attempt.database,
-                photos.staging_dir,
-                groups,
-                options,
-                config.camera_model,
-                threads,
-                report,
+                db, photos.staging_dir, groups, options, config.camera_model, threads, report
             )
+            exhaustive = options.matcher == "exhaustive"
+            pairs = steps.exhaustive_pairs(names) if exhaustive else steps.sequential_pairs(names)
     with attempt.timer("matching"):
-        pairs = (
-            steps.exhaustive_pairs(names)
-            if options.matcher == "exhaustive"
-            else steps.sequential_pairs(names)
-        )
-        steps.match_pairs(attempt.database, directory, pairs, options, config.seed, threads, report)
+        attempt.pairs_matched = len(pairs)
+        steps.match_pairs(db, directory, pairs, options, config.seed, threads, report)
     with attempt.timer("mapping"):
         attempt.models = steps.map_images(
-            attempt.database,
+            db,
             photos.staging_dir,
             directory / "sparse",
             names,
@@ -277,8 +301,9 @@ def run_sfm(
         groups = camera_groups(photos, config.single_camera)
         attempts: list[Attempt] = []
         for index, options in enumerate(attempt_ladder(config, len(photos.photos)), start=1):
+            previous = attempts[-1] if attempts else None
             attempts.append(
-                run_attempt(options, index, photos, groups, work_dir, config, attempts, progress)
+                run_attempt(options, index, photos, groups, work_dir, config, previous, progress)
             )
             if attempts[-1].registered == len(photos.photos):
                 break

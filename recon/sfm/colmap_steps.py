@@ -20,6 +20,9 @@ Progress = Callable[[str, int, int], None]
 
 # SIFT peak threshold COLMAP uses by default (0.02 / octave_resolution).
 DEFAULT_PEAK_THRESHOLD = 0.02 / 3
+# SIFT's first octave at -1 doubles the image first (4x the pyramid cost) to find small
+# blobs; worth it only on small images, where the 0-octave keypoints are too few.
+SIFT_UPSAMPLE_BELOW = 1000  # px, longer side after the max_image_size downscale
 EXTRACTION_CHUNK = 8  # images per extract_features call: progress granularity vs. thread start-up
 MATCHING_CHUNK = 150  # image pairs per match_image_pairs call
 
@@ -32,6 +35,7 @@ class AttemptOptions:
     max_image_size: int  # longer side the SIFT extractor downscales to (keypoints stay full-res)
     max_num_features: int  # SIFT keypoints kept per image
     peak_threshold: float  # SIFT DoG peak threshold; lower finds more keypoints in low contrast
+    always_upsample: bool  # SIFT first octave -1 on every image, not only small ones
     matcher: str  # "exhaustive" | "sequential" (windowed + quadratic + keyframe loop closure)
     guided_matching: bool  # re-match with the estimated epipolar geometry (more inliers, slower)
     min_num_inliers: int  # two-view geometry: inliers for a pair to count as verified
@@ -61,10 +65,16 @@ def chunks(items: list, size: int) -> list[list]:
     return [items[i : i + size] for i in range(0, len(items), size)]
 
 
+def first_octave(longer_side: int, options: AttemptOptions) -> int:
+    """-1 (upsample 2x) for images whose SIFT size is under SIFT_UPSAMPLE_BELOW, else 0."""
+    sift_size = min(longer_side, options.max_image_size)
+    return -1 if options.always_upsample or sift_size < SIFT_UPSAMPLE_BELOW else 0
+
+
 def extract_features(
     database: Path,
     image_dir: Path,
-    groups: list[list[str]],
+    groups: list[tuple[list[str], int]],
     options: AttemptOptions,
     camera_model: str,
     num_threads: int,
@@ -72,18 +82,19 @@ def extract_features(
 ) -> None:
     """SIFT keypoints and descriptors for every image into `database`.
 
-    `groups` lists the images that share one camera (one group per image for per-image
-    cameras). The first chunk of a group creates its camera; later chunks reuse it through
-    `existing_camera_id`, so calling extract_features per chunk keeps the camera shared.
+    `groups` lists (names, longer side in px) of the images that share one camera (one group
+    per image for per-image cameras). The first chunk of a group creates its camera; later
+    chunks reuse it through `existing_camera_id`, so the camera stays shared across calls.
     """
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = options.max_image_size
-    extraction.num_threads = num_threads
-    extraction.sift.max_num_features = options.max_num_features
-    extraction.sift.peak_threshold = options.peak_threshold
-    total, done = sum(len(g) for g in groups), 0
+    total, done = sum(len(names) for names, _ in groups), 0
     progress("features", 0, total)
-    for group in groups:
+    for group, longer_side in groups:
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = options.max_image_size
+        extraction.num_threads = num_threads
+        extraction.sift.max_num_features = options.max_num_features
+        extraction.sift.peak_threshold = options.peak_threshold
+        extraction.sift.first_octave = first_octave(longer_side, options)
         camera_id = -1
         for names in chunks(group, EXTRACTION_CHUNK):
             reader = pycolmap.ImageReaderOptions()
