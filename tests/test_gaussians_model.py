@@ -10,7 +10,6 @@ import torch
 
 from recon.cameras import Cameras
 from recon.fields.sh import C0
-from recon.gaussians.init import gaussians_from_points, initial_gaussians, knn_scales
 from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgb, project_splats
 from recon.models.base import METHODS, SceneInfo, TrainData
@@ -59,36 +58,10 @@ def synthetic_scene(size=32):
 
 
 def config(**overrides):
-    base = {**PRESETS["fast"], "init": "random", "init_points": 300, "densify_start": 20,
+    base = {**PRESETS["fast"], "init": "random", "init_points": 300, "init_from_images": False,
+            "densify_start": 20,
             "densify_interval": 20, "densify_grad_threshold": 0.00005, "sh_degree_interval": 30}
     return GaussiansConfig(**{**base, **overrides})
-
-
-def test_knn_scale_worked_example():
-    points = np.arange(5.0)[:, None] * np.array([[1.0, 0, 0]])  # unit-spaced line
-    s = knn_scales(points)
-    assert s[2] == pytest.approx(math.sqrt((1 + 1 + 4) / 3))  # neighbours at 1, 1, 2
-    assert s[0] == pytest.approx(math.sqrt((1 + 4 + 9) / 3))
-    assert np.isfinite(knn_scales(np.zeros((3, 3)))).all()  # duplicates hit the floor
-
-
-def test_init_from_points_matches_the_reference_conventions():
-    points = torch.rand(20, 3)
-    colors = torch.rand(20, 3)
-    g = gaussians_from_points(points, colors, sh_degree=3, opacity=0.1)
-    assert torch.allclose(C0 * g["sh_dc"][:, 0] + 0.5, colors, atol=1e-6)
-    assert torch.allclose(torch.sigmoid(g["opacity_logits"]), torch.full((20,), 0.1))
-    assert torch.equal(g["quats"], torch.tensor([[1.0, 0, 0, 0]]).expand(20, 4))
-    assert g["sh_rest"].shape == (20, 15, 3) and not g["sh_rest"].any()
-    assert torch.equal(g["means"], points)
-
-
-def test_random_init_fills_the_box_when_there_are_no_points():
-    scene = SceneInfo(aabb=torch.tensor([[-2.0, 0, 0], [2, 1, 3]]), unbounded=False,
-                      background=torch.zeros(3), near=0.1, far=6.0)
-    g = initial_gaussians(config(init="sfm", init_points=500), scene)
-    assert g["means"].shape == (500, 3)
-    assert (g["means"] >= scene.aabb[0]).all() and (g["means"] <= scene.aabb[1]).all()
 
 
 def test_training_fits_a_tiny_scene_and_densifies():
@@ -134,6 +107,17 @@ def test_resume_is_exact_across_densification():
         resumed.train_step(data, step)
     for name in straight.params:
         assert torch.equal(straight.params[name], resumed.params[name]), name
+
+
+def test_image_init_replaces_the_random_start_at_step_0():
+    scene, data = synthetic_scene()
+    model = GaussianModel(config(init_from_images=True), scene)
+    random_means = model.params["means"].detach().clone()
+    model.train_step(data, 0)
+    assert model.num_gaussians <= 300 and not torch.equal(model.params["means"][:5],
+                                                           random_means[:5])
+    for group in model.optimizer.param_groups:  # the optimizer follows the new tensors
+        assert group["params"][0] is model.params[group["name"]]
 
 
 def test_render_outputs_and_normalized_depth():

@@ -51,15 +51,60 @@ def random_points(aabb: Tensor, n: int, seed: int) -> tuple[Tensor, Tensor]:
     return points, torch.rand(n, 3, generator=gen)
 
 
-def initial_gaussians(config, scene) -> dict[str, Tensor]:
-    """Gaussians for `config` (init, init_points, sh_degree, init_opacity, seed) and a SceneInfo."""
-    use_sfm = config.init == "sfm" and scene.points is not None and len(scene.points) > 0
+def uses_random_init(config, scene) -> bool:
+    """init = random, or init = sfm without SfM points."""
     if config.init not in ("sfm", "random"):
         raise ValueError(f"init must be 'sfm' or 'random', got {config.init!r}")
-    if use_sfm:
+    return config.init == "random" or scene.points is None or len(scene.points) == 0
+
+
+def initial_gaussians(config, scene) -> dict[str, Tensor]:
+    """Gaussians for `config` (init, init_points, sh_degree, init_opacity, seed) and a SceneInfo."""
+    if not uses_random_init(config, scene):
         points = scene.points.float().cpu()
         colors = (scene.point_colors.float().cpu() if scene.point_colors is not None
                   else torch.full_like(points, 0.5))
     else:
         points, colors = random_points(scene.aabb, config.init_points, config.seed)
     return gaussians_from_points(points, colors, config.sh_degree, config.init_opacity)
+
+
+def image_colors(points: Tensor, images: Tensor, cameras) -> tuple[Tensor, Tensor]:
+    """Median colour of each point over the training views that see it (nearest pixel, no
+    occlusion test) and how many views see it. points (N, 3), images (C, H, W, 3) ->
+    colours (N, 3), counts (N,)."""
+    C, H, W, _ = images.shape
+    K, cfw = cameras.K.to(points), cameras.cam_from_world.to(points)
+    p_cam = points[None] @ cfw[:, :3, :3].transpose(1, 2) + cfw[:, None, :3, 3]  # (C, N, 3)
+    z = p_cam[..., 2]
+    zs = z.clamp_min(1e-9)
+    u = K[:, None, 0, 0] * p_cam[..., 0] / zs + K[:, None, 0, 2]
+    v = K[:, None, 1, 1] * p_cam[..., 1] / zs + K[:, None, 1, 2]
+    seen = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    col, row = u.clamp(0, W - 1).long(), v.clamp(0, H - 1).long()
+    views = torch.arange(C, device=points.device)[:, None].expand_as(col)
+    samples = images.to(points)[views, row, col]  # (C, N, 3)
+    samples = torch.where(seen[..., None], samples, torch.full_like(samples, float("nan")))
+    return torch.nanmedian(samples, dim=0).values, seen.sum(0)
+
+
+def sample_in_hull(aabb: Tensor, n: int, images: Tensor, cameras, background: Tensor, seed: int,
+                   tolerance: float = 0.02, rounds: int = 20) -> tuple[Tensor, Tensor]:
+    """Up to n uniform points of the box whose median colour over the views that see them is
+    not the background (a visual hull, for captures composited on a plain background), with
+    those colours. Where every view sees the object nothing is rejected, so on real captures
+    this is random init with image colours. -> points (M, 3), colours (M, 3), M <= n."""
+    gen = torch.Generator().manual_seed(seed)
+    lo, hi = aabb[0].float().cpu(), aabb[1].float().cpu()
+    kept_p, kept_c, total = [], [], 0
+    for _ in range(rounds):
+        points = lo + (hi - lo) * torch.rand(n, 3, generator=gen)
+        colors, counts = image_colors(points, images.cpu(), cameras.to("cpu"))
+        off_bg = (colors - background.float().cpu()).abs().amax(-1) > tolerance
+        keep = (counts > 0) & off_bg
+        kept_p.append(points[keep])
+        kept_c.append(colors[keep])
+        total += int(keep.sum())
+        if total >= n:
+            break
+    return torch.cat(kept_p)[:n], torch.cat(kept_c)[:n].clamp(0, 1)

@@ -18,7 +18,8 @@ from torch.profiler import record_function
 
 from recon.cameras import Cameras
 from recon.gaussians import densify
-from recon.gaussians.init import initial_gaussians
+from recon.gaussians.init import (gaussians_from_points, initial_gaussians, sample_in_hull,
+                                  uses_random_init)
 from recon.gaussians.optim import make_adam, set_lr
 from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.ssim import ssim
@@ -34,6 +35,7 @@ class GaussiansConfig:
 
     init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
     init_points: int = 100_000  # random initial Gaussians in the scene box
+    init_from_images: bool = False  # random init: sample the visual hull, colours from images
     init_opacity: float = 0.1  # initial opacity of every Gaussian
     sh_degree: int = 3  # largest SH degree of the colours
     sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
@@ -58,14 +60,15 @@ class GaussiansConfig:
     prune_world_fraction: float = 0.1  # prune if max scale > this x extent (after a reset)
     max_gaussians: int = 3_000_000  # densification stops growing the count here
     seed: int = 0  # seeds random init, view order and split sampling
+    default_steps: int = 30_000  # steps when `recon train` is given no stopping rule
 
 
 PRESETS = {
     "paper": {},
     "fast": {
-        "init_points": 20_000, "sh_degree_interval": 500, "lr_decay_steps": 5000,
+        "init_points": 20_000, "init_from_images": True, "sh_degree_interval": 500, "lr_decay_steps": 5000,
         "densify_start": 100, "densify_stop": 2000, "densify_interval": 100,
-        "opacity_reset_interval": 1000, "max_gaussians": 200_000,
+        "opacity_reset_interval": 1000, "max_gaussians": 200_000, "default_steps": 3000,
     },
 }
 
@@ -124,6 +127,8 @@ class GaussianModel(Model):
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
         self.params = nn.ParameterDict(
             {k: nn.Parameter(v) for k, v in initial_gaussians(config, scene).items()})
+        self._aabb = scene.aabb.float().clone()
+        self._random_init = uses_random_init(config, scene)
         self._reset_training_state()
 
     def _reset_training_state(self) -> None:
@@ -171,6 +176,8 @@ class GaussianModel(Model):
     def _prepare_step(self, data: TrainData, step: int) -> float:
         """Scene extent (from the training cameras, once), SH degree and means lr for `step`."""
         c = self.config
+        if step == 0 and self._random_init and c.init_from_images:
+            self._init_from_images(data)
         if float(self.scene_extent) == 0.0:
             self.scene_extent.fill_(camera_extent(data.cameras))
         extent = float(self.scene_extent)
@@ -180,6 +187,22 @@ class GaussianModel(Model):
         self.active_sh_degree.fill_(min(c.sh_degree, step // max(c.sh_degree_interval, 1)))
         set_lr(self.optimizer, "means", means_lr(c, step, extent))
         return extent
+
+    @torch.no_grad()
+    def _init_from_images(self, data: TrainData) -> None:
+        """Replace the random Gaussians by ones sampled in the training images' visual hull and
+        coloured by them (`init.sample_in_hull`): far fewer wasted splats when the capture is
+        composited on a plain background, image colours otherwise."""
+        c = self.config
+        points, colors = sample_in_hull(self._aabb, c.init_points, data.images, data.cameras,
+                                        self.background, c.seed)
+        if len(points) < 4:  # nothing but background: keep the random start
+            return
+        device = self.params["means"].device
+        fresh = gaussians_from_points(points, colors, c.sh_degree, c.init_opacity)
+        for name, value in fresh.items():
+            self.params[name] = nn.Parameter(value.to(device))
+        self._reset_training_state()
 
     def _densify(self, splats: ProjectedSplats, step: int, extent: float) -> None:
         if step + 1 < self.strategy.stop:

@@ -91,19 +91,25 @@ def _col_range(mx, dy, B, ellipse, x0, x1):
 
 
 @numba.njit(cache=True)
-def _gauss_row(mx, dy, A, B, C, centers, px0, px1, recur, out):
+def _row_decay(ellipse, A):
+    """exp(-A) for the row recurrence, or 0 to use one exp per pixel: non positive-definite
+    conics and A > RECUR_MAX_A (needle-thin splats, where exp(A dx) could overflow)."""
+    return math.exp(-float(A)) if ellipse[1] and A <= RECUR_MAX_A else 0.0
+
+
+@numba.njit(cache=True)
+def _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, out):
     """out[j] = exp(power) at columns px0 + j of the row at offset dy, 0 where power > 0.
 
-    With `recur` (positive definite, A <= RECUR_MAX_A) it uses the exact recurrence of a
-    quadratic exponent instead of one exp per pixel: stepping dx -> dx - 1 multiplies G by
+    With decay = exp(-A) > 0 (from `_row_decay`) it uses the exact recurrence of a quadratic
+    exponent instead of one exp per pixel: stepping dx -> dx - 1 multiplies G by
     r = exp(A dx - A/2 + B dy), and r by exp(-A). In float64; the backward calls this same
     function, so both passes see bit-identical values."""
     dx = float(mx - centers[px0])
     dyf = float(dy)
-    if recur:
+    if decay > 0:
         gauss = math.exp(-0.5 * (A * dx * dx + C * dyf * dyf) - B * dx * dyf)
         ratio = math.exp(A * dx - 0.5 * A + B * dyf)
-        decay = math.exp(-float(A))
         for j in range(px1 - px0):
             out[j] = gauss
             gauss *= ratio
@@ -138,14 +144,14 @@ def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids
         if not o >= alpha_min:  # alpha <= o: never visible
             continue
         ellipse = _ellipse(A, B, C, o, alpha_min)
-        recur = ellipse[1] and A <= RECUR_MAX_A
+        decay = _row_decay(ellipse, A)
         py0, py1 = _row_range(my, ellipse, y0, y1)
         for py in range(py0, py1):
             dy = my - centers[py]
             px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
             if px1 <= px0:
                 continue
-            _gauss_row(mx, dy, A, B, C, centers, px0, px1, recur, row)
+            _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, row)
             for px in range(px0, px1):
                 p = (py - y0) * tw + (px - x0)
                 if done[p]:
@@ -217,7 +223,7 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
         if not o >= alpha_min:
             continue
         ellipse = _ellipse(A, B, C, o, alpha_min)
-        recur = ellipse[1] and A <= RECUR_MAX_A
+        decay = _row_decay(ellipse, A)
         py0, py1 = _row_range(my, ellipse, y0, y1)
         g_mx = g_my = g_A = g_B = g_C = g_o = 0.0
         g_f[:] = 0.0
@@ -226,7 +232,7 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
             px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
             if px1 <= px0:
                 continue
-            _gauss_row(mx, dy, A, B, C, centers, px0, px1, recur, row)
+            _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, row)
             for px in range(px0, px1):
                 p = (py - y0) * tw + (px - x0)
                 if last[p] < i:

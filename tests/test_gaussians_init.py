@@ -1,0 +1,71 @@
+"""Initial Gaussians: kNN scales, the reference's conventions, random and image-guided init."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from recon.cameras import Cameras
+from recon.fields.sh import C0
+from recon.gaussians.init import (gaussians_from_points, image_colors, initial_gaussians,
+                                  knn_scales, sample_in_hull)
+from recon.gaussians.model import PRESETS, GaussiansConfig
+from recon.models.base import SceneInfo
+
+
+def test_knn_scale_worked_example():
+    points = np.arange(5.0)[:, None] * np.array([[1.0, 0, 0]])  # unit-spaced line
+    s = knn_scales(points)
+    assert s[2] == pytest.approx(math.sqrt((1 + 1 + 4) / 3))  # neighbours at 1, 1, 2
+    assert s[0] == pytest.approx(math.sqrt((1 + 4 + 9) / 3))
+    assert np.isfinite(knn_scales(np.zeros((3, 3)))).all()  # duplicates hit the floor
+
+
+def test_init_from_points_matches_the_reference_conventions():
+    points = torch.rand(20, 3)
+    colors = torch.rand(20, 3)
+    g = gaussians_from_points(points, colors, sh_degree=3, opacity=0.1)
+    assert torch.allclose(C0 * g["sh_dc"][:, 0] + 0.5, colors, atol=1e-6)
+    assert torch.allclose(torch.sigmoid(g["opacity_logits"]), torch.full((20,), 0.1))
+    assert torch.equal(g["quats"], torch.tensor([[1.0, 0, 0, 0]]).expand(20, 4))
+    assert g["sh_rest"].shape == (20, 15, 3) and not g["sh_rest"].any()
+    assert torch.equal(g["means"], points)
+
+
+def test_random_init_fills_the_box_when_there_are_no_points():
+    scene = SceneInfo(aabb=torch.tensor([[-2.0, 0, 0], [2, 1, 3]]), unbounded=False,
+                      background=torch.zeros(3), near=0.1, far=6.0)
+    g = initial_gaussians(GaussiansConfig(**{**PRESETS["fast"], "init_points": 500}), scene)
+    assert g["means"].shape == (500, 3)
+    assert (g["means"] >= scene.aabb[0]).all() and (g["means"] <= scene.aabb[1]).all()
+
+
+def one_camera(size=8):
+    K = torch.tensor([[[10.0, 0, size / 2], [0, 10.0, size / 2], [0, 0, 1]]])
+    return Cameras(K, torch.eye(4)[None], torch.tensor([size]), torch.tensor([size]))
+
+
+def test_image_colors_reads_the_projected_pixel():
+    images = torch.rand(1, 8, 8, 3)
+    points = torch.tensor([[0.0, 0.0, 2.0], [0.3, -0.2, 1.0], [0.0, 0.0, -1.0]])
+    colors, counts = image_colors(points, images, one_camera())
+    assert torch.equal(colors[0], images[0, 4, 4])  # the axis hits pixel centre (4.5, 4.5)
+    assert torch.equal(colors[1], images[0, 2, 7])  # u = 10 * 0.3 + 4 = 7, v = -2 + 4 = 2
+    assert counts.tolist() == [1, 1, 0] and torch.isnan(colors[2]).all()
+
+
+def test_hull_sampling_drops_background_points():
+    """A white image with a red centre block: survivors project onto red, with its colour."""
+    images = torch.ones(1, 8, 8, 3)
+    images[0, 2:6, 2:6] = torch.tensor([1.0, 0.0, 0.0])
+    aabb = torch.tensor([[-1.0, -1.0, 1.0], [1.0, 1.0, 3.0]])
+    points, colors = sample_in_hull(aabb, 200, images, one_camera(), torch.ones(3), seed=0)
+    assert len(points) == 200
+    assert torch.equal(colors, torch.tensor([1.0, 0.0, 0.0]).expand(200, 3))
+    u = 10 * points[:, 0] / points[:, 2] + 4
+    assert ((u >= 2) & (u < 6)).all()
+    # A background colour that never appears rejects nothing: plain random init, image colours.
+    points, _ = sample_in_hull(aabb, 50, images, one_camera(), torch.zeros(3), seed=0)
+    assert len(points) == 50
+
