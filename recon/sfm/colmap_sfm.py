@@ -55,7 +55,7 @@ class SfmConfig:
     single_camera: bool = True  # one camera shared by all photos of one size (one device)
     try_harder: bool = True  # retry with more features / other matcher if photos stay out
     min_image_side: int = 64  # photos with a shorter side below this (px) are skipped
-    seed: int = 0  # RANSAC and mapper seed (runs repeat exactly only with num_threads=1)
+    seed: int = 0  # RANSAC and mapper seed (runs repeat bit for bit only with num_threads=1)
     num_threads: int = -1  # COLMAP threads (-1: all cores)
     verbose: bool = False  # show COLMAP's own log lines
 
@@ -276,6 +276,21 @@ def run_attempt(
     return attempt
 
 
+def run_ladder(
+    photos: PhotoSet, work_dir: Path, config: SfmConfig, progress: Progress
+) -> list[Attempt]:
+    """Run attempts until one registers every photo or the ladder ends."""
+    groups = camera_groups(photos, config.single_camera)
+    attempts: list[Attempt] = []
+    for index, options in enumerate(attempt_ladder(config, len(photos.photos)), start=1):
+        previous = attempts[-1] if attempts else None
+        attempt = run_attempt(options, index, photos, groups, work_dir, config, previous, progress)
+        attempts.append(attempt)
+        if attempt.registered == len(photos.photos):
+            break
+    return attempts
+
+
 def run_sfm(
     image_dir: Path,
     work_dir: Path,
@@ -298,15 +313,7 @@ def run_sfm(
         pycolmap.set_random_seed(config.seed)
         with timer("photos"):
             photos = prepare_photos(Path(image_dir), work_dir / "images", config.min_image_side)
-        groups = camera_groups(photos, config.single_camera)
-        attempts: list[Attempt] = []
-        for index, options in enumerate(attempt_ladder(config, len(photos.photos)), start=1):
-            previous = attempts[-1] if attempts else None
-            attempts.append(
-                run_attempt(options, index, photos, groups, work_dir, config, previous, progress)
-            )
-            if attempts[-1].registered == len(photos.photos):
-                break
+        attempts = run_ladder(photos, work_dir, config, progress)
         chosen = max(
             attempts, key=lambda a: (a.registered, a.best.num_points3D() if a.models else 0)
         )
