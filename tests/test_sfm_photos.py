@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from recon.sfm.photos import EXIF_ORIENTATION_TAG, PhotoError, png_bit_depth, prepare_photos
+from recon.sfm.photos import (
+    EXIF_ORIENTATION_TAG,
+    PhotoError,
+    bits_per_sample,
+    png_bit_depth,
+    prepare_photos,
+)
 
 
 def blocks(h: int, w: int, seed: int = 0) -> np.ndarray:
@@ -108,7 +114,9 @@ def test_16bit_png_is_converted_to_8bit(tmp_path):
     cv2.imwrite(str(src / "deep_gray.png"), ramp)
     rgb16 = (blocks(96, 128, seed=9).astype(np.uint16) * 257 + 100).astype(np.uint16)
     cv2.imwrite(str(src / "deep_rgb.png"), rgb16)  # written BGR, read back BGR below
+    cv2.imwrite(str(src / "deep_rgb.tif"), rgb16)
     assert png_bit_depth(src / "deep_gray.png") == 16 and png_bit_depth(src / "img0.png") == 8
+    assert bits_per_sample(src / "deep_rgb.tif") == 16 and bits_per_sample(src / "img1.png") == 8
     photos = prepare_photos(src, tmp_path / "stage")
     converted = {p.name: p.converted for p in photos.photos}
     assert (
@@ -120,6 +128,9 @@ def test_16bit_png_is_converted_to_8bit(tmp_path):
     rgb8 = cv2.imread(str(tmp_path / "stage" / "deep_rgb.png"), cv2.IMREAD_UNCHANGED)
     assert rgb8.dtype == np.uint8 and rgb8.shape == (96, 128, 3)
     np.testing.assert_allclose(rgb8, rgb16 / 257.0, atol=1.0)
+    tif8 = cv2.imread(str(tmp_path / "stage" / "deep_rgb.tif"), cv2.IMREAD_UNCHANGED)
+    assert tif8.dtype == np.uint8
+    np.testing.assert_allclose(tif8, rgb16 / 257.0, atol=1.0)
 
 
 def test_format_is_sniffed_by_content(tmp_path):
@@ -134,3 +145,9 @@ def test_format_is_sniffed_by_content(tmp_path):
     assert Image.open(tmp_path / "stage" / "IMG_0001.jpg").format == "JPEG"
     bmp = np.asarray(Image.open(tmp_path / "stage" / "scan.bmp.png"))
     np.testing.assert_array_equal(bmp, blocks(96, 128, seed=8))
+    # A second source that would be staged under the same name is refused, not overwritten.
+    save(src / "IMG_0001.jpg", blocks(96, 128, seed=11), quality=95)
+    clash = prepare_photos(src, tmp_path / "stage2")
+    assert dict(clash.skipped) == {
+        "IMG_0001.jpg": "staged name IMG_0001.jpg is taken by another photo"
+    }

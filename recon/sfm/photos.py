@@ -67,6 +67,15 @@ def png_bit_depth(path: Path) -> int:
     return 8
 
 
+def bits_per_sample(path: Path) -> int:
+    """Largest bits per sample of a PNG or TIFF file (TIFF tag 258), 8 for other formats."""
+    with Image.open(path) as image:
+        if image.format == "TIFF":
+            bits = image.tag_v2.get(258, 8)
+            return max(bits) if isinstance(bits, tuple) else int(bits)
+    return png_bit_depth(path)
+
+
 def list_photo_files(folder: Path) -> list[Path]:
     """Regular files directly in `folder` (sorted, hidden files ignored); raises on a bad folder."""
     folder = Path(folder)
@@ -137,8 +146,8 @@ def conversion_reason(image: Image.Image, fmt: str, path: Path, rotated: bool) -
     """Why the photo cannot be handed to COLMAP as is ("" when a symlink will do)."""
     if rotated:
         return "EXIF rotation applied"
-    if png_bit_depth(path) == 16:
-        return "16-bit PNG converted to 8 bit"
+    if bits_per_sample(path) > 8:
+        return f"{bits_per_sample(path)}-bit {fmt} converted to 8 bit"
     if image.mode not in ("L", "RGB", "RGBA"):
         return f"{image.mode} image converted to 8-bit L/RGB"
     if fmt not in NATIVE_FORMATS:
@@ -204,6 +213,9 @@ def prepare_photos(image_dir: Path, staging_dir: Path, min_side: int = 64) -> Ph
             continue
         if photo.sha1 in first_by_hash:
             skipped.append((path.name, f"duplicate of {first_by_hash[photo.sha1]}"))
+            continue
+        if any(p.name == photo.name for p in photos):
+            skipped.append((path.name, f"staged name {photo.name} is taken by another photo"))
             continue
         first_by_hash[photo.sha1] = path.name
         photos.append(photo)
