@@ -8,8 +8,13 @@ import torch
 
 from recon.cameras import Cameras
 from recon.fields.sh import C0
-from recon.gaussians.init import (gaussians_from_points, image_colors, initial_gaussians,
-                                  knn_scales, sample_in_hull)
+from recon.gaussians.init import (
+    gaussians_from_points,
+    image_colors,
+    initial_gaussians,
+    knn_scales,
+    sample_in_hull,
+)
 from recon.gaussians.model import PRESETS, GaussiansConfig
 from recon.models.base import SceneInfo
 

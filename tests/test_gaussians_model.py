@@ -5,7 +5,6 @@ import io
 import math
 
 import numpy as np
-import pytest
 import torch
 
 from recon.cameras import Cameras

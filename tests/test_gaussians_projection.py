@@ -9,10 +9,16 @@ import torch
 
 from recon.cameras.conventions import rotation_from_quat_wxyz
 from recon.fields.sh import C0
-from recon.gaussians.projection import (conic_from_cov2d, covariance_3d, covariance_factor,
-                                        ewa_covariance_2d,
-                                        project_gaussians, radius_3sigma, rotation_from_quats,
-                                        sh_colors)
+from recon.gaussians.projection import (
+    conic_from_cov2d,
+    covariance_3d,
+    covariance_factor,
+    ewa_covariance_2d,
+    project_gaussians,
+    radius_3sigma,
+    rotation_from_quats,
+    sh_colors,
+)
 
 F64 = torch.float64
 
@@ -49,7 +55,7 @@ def test_problem5_covariances_eigenvalues_and_weight():
 
 def test_problem5_through_project_gaussians():
     mean, quat, log_scales, K = problem5()
-    means2d, conics, depths, radii = project_gaussians(mean, quat, log_scales, K,
+    means2d, _conics, depths, radii = project_gaussians(mean, quat, log_scales, K,
                                                        torch.eye(4, dtype=F64), 2000, 2000)
     assert means2d[0].tolist() == pytest.approx([1111 * 0.2 + 1000, -1111 * 0.1 + 1000])
     assert float(depths[0]) == 2.0
@@ -181,7 +187,7 @@ def test_tiny_and_huge_scales_project_finitely(scale, radius):
     means = torch.tensor([[0.1, 0.0, 2.0]], dtype=F64, requires_grad=True)
     quats = torch.tensor([[0.9, 0.1, 0.2, 0.3]], dtype=F64, requires_grad=True)
     log_s = torch.full((1, 3), math.log(scale), dtype=F64, requires_grad=True)
-    means2d, conics, depths, radii = project_gaussians(means, quats, log_s, K, cfw, 64, 64)
+    means2d, conics, _depths, radii = project_gaussians(means, quats, log_s, K, cfw, 64, 64)
     if radius is not None:  # the 0.3 px dilation alone: a one-pixel splat
         assert float(radii[0]) == radius
     else:  # covers the whole image

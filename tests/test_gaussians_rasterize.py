@@ -57,7 +57,7 @@ def test_fast_matches_reference_outputs_and_gradients(G, W, H, D, seed):
 def test_opaque_stack_terminates_early_like_the_reference():
     """Many near-opaque splats over every pixel: transmittance stops before 1e-4."""
     splats = random_splats(80, 40, 24, seed=4, opacity=(0.9, 1.0), sigma=8.0)
-    (image, T), _ = compare(splats, 40, 24)
+    (_image, T), _ = compare(splats, 40, 24)
     covered = T < 0.5
     assert covered.float().mean() > 0.5
     assert (T >= T_MIN).all() and (T[covered] < 1e-2).any()
@@ -105,7 +105,7 @@ def test_alpha_is_clamped_and_faint_splats_skipped():
     cov = torch.tensor([[2.0, 0.0, 2.0]] * 2, dtype=F64)
     conics = conic_from_cov2d(cov)[0]
     opac = torch.tensor([1.0, 0.5 / 255], dtype=F64)  # clamped to 0.99 | below 1/255: skipped
-    image, T = rasterize_features(means2d, conics, opac, torch.ones(2, 1, dtype=F64),
+    _image, T = rasterize_features(means2d, conics, opac, torch.ones(2, 1, dtype=F64),
                                   radius_3sigma(cov), torch.ones(2, dtype=F64), 32, 8)
     assert float(T.min()) == pytest.approx(1 - ALPHA_MAX)
     assert torch.all(T[:, 20:] == 1.0)
@@ -120,7 +120,7 @@ def test_one_gaussian_and_one_covering_the_whole_image():
     conics = conic_from_cov2d(cov)[0]
     splats = (means2d, conics, torch.tensor([0.7, 0.9], dtype=F64),
               torch.rand(2, 3, dtype=F64), radius_3sigma(cov), torch.tensor([2.0, 1.0], dtype=F64))
-    (image, T), _ = compare(splats, W, H)
+    (_image, T), _ = compare(splats, W, H)
     assert (T < 1).all()  # the big one reaches every pixel
 
 

@@ -18,13 +18,16 @@ from torch.profiler import record_function
 
 from recon.cameras import Cameras
 from recon.gaussians import densify
-from recon.gaussians.init import (gaussians_from_points, initial_gaussians, sample_in_hull,
-                                  uses_random_init)
+from recon.gaussians.init import (
+    gaussians_from_points,
+    initial_gaussians,
+    sample_in_hull,
+    uses_random_init,
+)
 from recon.gaussians.optim import make_adam, set_lr
 from recon.gaussians.ply import write_splat_ply
+from recon.gaussians.render import ProjectedSplats, composite_rgb, composite_rgbd, project_splats
 from recon.gaussians.ssim import ssim
-from recon.gaussians.render import (ProjectedSplats, composite_rgb, composite_rgbd,
-                                    project_splats)
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
 
 

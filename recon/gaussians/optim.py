@@ -8,7 +8,7 @@ name with `group["name"]` set.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn

@@ -122,13 +122,19 @@ def _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, out):
 
 
 @numba.njit(cache=True)
+def _tile_box(t, width, height, tile):
+    """Pixel box [x0, x1) x [y0, y1) of tile t (row-major tiles; edge tiles are clipped)."""
+    tiles_x = (width + tile - 1) // tile
+    x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
+    return x0, y0, min(x0 + tile, width), min(y0 + tile, height)
+
+
+@numba.njit(cache=True)
 def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
                   height, tile, consts, centers, out_feat, out_T, out_last):
     alpha_max, alpha_min, t_min, one = consts[0], consts[1], consts[2], consts[4]
     D = features.shape[1]
-    tiles_x = (width + tile - 1) // tile
-    x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
-    x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
+    x0, y0, x1, y1 = _tile_box(t, width, height, tile)
     tw, n_pix = x1 - x0, (x1 - x0) * (y1 - y0)
     T = np.ones(n_pix, features.dtype)
     acc = np.zeros((n_pix, D), features.dtype)
@@ -192,14 +198,62 @@ def _forward_kernel(means2d, conics, opacities, features, tile_start, gauss_ids,
 
 
 @numba.njit(cache=True)
+def _backward_splat(g, i, box, means2d, conics, opacities, features, consts, centers, T, last,
+                    g_feat, g_T_final, S, g_f, row):
+    """Gradients of splat g (position i in its tile's list) summed over the tile's pixels that
+    it reached, walking back to front (updates T to T_i and S to S_i as it goes).
+    Returns dL/d(mx, my, A, B, C, o); dL/df goes to g_f."""
+    alpha_max, alpha_min, half, one = consts[0], consts[1], consts[3], consts[4]
+    x0, y0, x1, y1 = box
+    tw = x1 - x0
+    mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
+    A, B, C = conics[g, 0], conics[g, 1], conics[g, 2]
+    ellipse = _ellipse(A, B, C, o, alpha_min)
+    decay = _row_decay(ellipse, A)
+    py0, py1 = _row_range(my, ellipse, y0, y1)
+    g_mx = g_my = g_A = g_B = g_C = g_o = 0.0
+    g_f[:] = 0.0
+    for py in range(py0, py1):
+        dy = my - centers[py]
+        px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
+        if px1 <= px0:
+            continue
+        _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, row)
+        for px in range(px0, px1):
+            p = (py - y0) * tw + (px - x0)
+            if last[p] < i:
+                continue
+            dx = mx - centers[px]
+            gauss = row[px - px0]
+            o_gauss = o * gauss
+            alpha = min(alpha_max, o_gauss)
+            if alpha < alpha_min:
+                continue
+            inv_one_minus = one / (one - alpha)  # one division instead of D + 2
+            T[p] = T[p] * inv_one_minus  # T_i, transmittance in front of splat i
+            w = alpha * T[p]
+            g_alpha = -g_T_final[p] * inv_one_minus
+            for c in range(features.shape[1]):
+                g_f[c] += g_feat[p, c] * w
+                g_alpha += g_feat[p, c] * (T[p] * features[g, c] - S[p, c] * inv_one_minus)
+                S[p, c] += w * features[g, c]
+            if o_gauss <= alpha_max:  # the 0.99 clamp passes no gradient
+                g_o += g_alpha * gauss
+                g_pow = g_alpha * o_gauss
+                g_mx -= g_pow * (A * dx + B * dy)
+                g_my -= g_pow * (B * dx + C * dy)
+                g_A -= g_pow * half * dx * dx
+                g_B -= g_pow * dx * dy
+                g_C -= g_pow * half * dy * dy
+    return g_mx, g_my, g_A, g_B, g_C, g_o
+
+
+@numba.njit(cache=True)
 def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
                    height, tile, consts, centers, fwd_T, fwd_last, grad_feat, grad_T, grads):
-    alpha_max, alpha_min, half, one = consts[0], consts[1], consts[3], consts[4]
-    D = features.shape[1]
-    tiles_x = (width + tile - 1) // tile
-    x0, y0 = (t % tiles_x) * tile, (t // tiles_x) * tile
-    x1, y1 = min(x0 + tile, width), min(y0 + tile, height)
-    tw, n_pix = x1 - x0, (x1 - x0) * (y1 - y0)
+    box = _tile_box(t, width, height, tile)
+    x0, y0, x1, y1 = box
+    tw, n_pix, D = x1 - x0, (x1 - x0) * (y1 - y0), features.shape[1]
     T = np.empty(n_pix, features.dtype)
     last = np.empty(n_pix, np.int32)
     g_feat = np.empty((n_pix, D), features.dtype)
@@ -217,54 +271,13 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
         max_last = max(max_last, last[p])
     start = tile_start[t]
     for k in range(start + max_last, start - 1, -1):
-        g, i = gauss_ids[k], k - start
-        mx, my, o = means2d[g, 0], means2d[g, 1], opacities[g]
-        A, B, C = conics[g, 0], conics[g, 1], conics[g, 2]
-        if not o >= alpha_min:
+        g = gauss_ids[k]
+        if not opacities[g] >= consts[1]:  # alpha <= o < 1/255: never reached a pixel
             continue
-        ellipse = _ellipse(A, B, C, o, alpha_min)
-        decay = _row_decay(ellipse, A)
-        py0, py1 = _row_range(my, ellipse, y0, y1)
-        g_mx = g_my = g_A = g_B = g_C = g_o = 0.0
-        g_f[:] = 0.0
-        for py in range(py0, py1):
-            dy = my - centers[py]
-            px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
-            if px1 <= px0:
-                continue
-            _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, row)
-            for px in range(px0, px1):
-                p = (py - y0) * tw + (px - x0)
-                if last[p] < i:
-                    continue
-                dx = mx - centers[px]
-                gauss = row[px - px0]
-                o_gauss = o * gauss
-                alpha = min(alpha_max, o_gauss)
-                if alpha < alpha_min:
-                    continue
-                inv_one_minus = one / (one - alpha)  # one division instead of D + 2
-                T[p] = T[p] * inv_one_minus  # T_i, transmittance in front of splat i
-                w = alpha * T[p]
-                g_alpha = -g_T_final[p] * inv_one_minus
-                for c in range(D):
-                    g_f[c] += g_feat[p, c] * w
-                    g_alpha += g_feat[p, c] * (T[p] * features[g, c] - S[p, c] * inv_one_minus)
-                    S[p, c] += w * features[g, c]
-                if o_gauss <= alpha_max:  # the 0.99 clamp passes no gradient
-                    g_o += g_alpha * gauss
-                    g_pow = g_alpha * o_gauss
-                    g_mx -= g_pow * (A * dx + B * dy)
-                    g_my -= g_pow * (B * dx + C * dy)
-                    g_A -= g_pow * half * dx * dx
-                    g_B -= g_pow * dx * dy
-                    g_C -= g_pow * half * dy * dy
-        grads[g, 0] += g_mx
-        grads[g, 1] += g_my
-        grads[g, 2] += g_A
-        grads[g, 3] += g_B
-        grads[g, 4] += g_C
-        grads[g, 5] += g_o
+        g_splat = _backward_splat(g, k - start, box, means2d, conics, opacities, features,
+                                  consts, centers, T, last, g_feat, g_T_final, S, g_f, row)
+        for j in range(GRAD_COLUMNS):
+            grads[g, j] += g_splat[j]
         for c in range(D):
             grads[g, GRAD_COLUMNS + c] += g_f[c]
 

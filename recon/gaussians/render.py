@@ -8,8 +8,8 @@ R >= (degree + 1)^2 - 1.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import torch
 from torch import Tensor
