@@ -73,7 +73,7 @@ def eval_psnr(model, data: TrainData) -> float:
     return -10 * math.log10(sum(mses) / len(mses))
 
 
-SMALL = NGPConfig(log2_table_size=14, n_max=128, n_levels=8, rays_per_batch=256, march_steps=96,
+SMALL = NGPConfig(log2_table_size=14, n_max=128, n_levels=8, rays_per_batch=256, samples_per_batch=0, march_steps=96,
                   occupancy_res=32, occupancy_warmup=16, occupancy_decay=0.6, lr_decay_steps=150, chunk=2048)
 
 
@@ -122,7 +122,7 @@ def test_learns_sphere_and_renders():
 
 def test_resume_is_exact():
     data, info, _ = sphere_scene(n_cams=4, size=16)
-    cfg = SMALL
+    cfg = NGPConfig(**{**SMALL.__dict__, "samples_per_batch": 3000})  # the ray batch adapts
     a = NGPModel(cfg, info)
     for step in range(20):
         a.train_step(data, step)
@@ -134,6 +134,7 @@ def test_resume_is_exact():
         assert la["loss"] == lb["loss"]
     for (na, pa), (_, pb) in zip(a.state_dict().items(), b.state_dict().items()):
         assert torch.equal(pa, pb), na
+    assert a.n_rays == b.n_rays != cfg.rays_per_batch
 
 
 def test_misses_and_empty_batches_are_safe():

@@ -47,7 +47,8 @@ class NGPConfig:
     hidden: int = 64  # width of the hidden layers of both MLPs
     geo_features: int = 15  # geometry-feature channels passed from the density to the colour MLP
     sh_degree: int = 3  # SH degree of the view-direction encoding (3 = the paper's 16 coefficients)
-    rays_per_batch: int = 1024  # rays per training step
+    rays_per_batch: int = 1024  # rays of the first training step
+    samples_per_batch: int = 1 << 16  # target samples per step: the ray batch adapts (0 = fixed)
     march_steps: int = 256  # marching steps along the scene box diagonal (paper: 1024)
     cone_angle: float = 1 / 256  # unbounded scenes only: step grows as t * cone_angle
     occupancy_res: int = 64  # occupancy grid resolution (paper: 128)
@@ -67,7 +68,8 @@ class NGPConfig:
 
 PRESETS = {
     "fast": {},
-    "paper": {"log2_table_size": 19, "n_max": 2048, "rays_per_batch": 4096, "march_steps": 1024,
+    "paper": {"log2_table_size": 19, "n_max": 2048, "rays_per_batch": 4096, "samples_per_batch": 1 << 18,
+              "march_steps": 1024,
               "occupancy_res": 128, "occupancy_decay": 0.95, "occupancy_warmup": 256,
               "lr_decay_steps": 20000, "default_steps": 35000, "chunk": 16384},
 }
@@ -108,6 +110,7 @@ class NGPModel(Model):
         diag = (self.aabb[1] - self.aabb[0]).norm().item()
         self.step_size = diag / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
         mlp_params = [*self.field.density_mlp.parameters(), *self.field.color_mlp.parameters()]
         self.optimizer = torch.optim.Adam(
             [{"params": [self.field.grid.table], "weight_decay": 0.0},
@@ -135,13 +138,16 @@ class NGPModel(Model):
             x = self.to_unit(origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri])
         return ri, t0, t1, x
 
-    def _render_rays_train(self, origins: Tensor, directions: Tensor):
+    def _render_rays_train(self, origins: Tensor, directions: Tensor, prepass: bool):
         """Occupied samples, a gradient-free density pre-pass to drop those behind T < eps, then
-        the field with gradients on the survivors only. -> (VolumeRender, number of samples)."""
+        the field with gradients on the survivors only. -> (VolumeRender, number of samples).
+        During occupancy warm-up the density is still too low to terminate any ray, so the
+        pre-pass would only cost time and is skipped."""
         ri, t0, t1, x = self._occupied_samples(origins, directions, jitter=True)
-        with torch.no_grad():
-            keep = terminated_mask(self.field.sigma(x), t0, t1, ri, self.cfg.eps_transmittance)
-        ri, t0, t1, x = ri[keep], t0[keep], t1[keep], x[keep]
+        if prepass:
+            with torch.no_grad():
+                keep = terminated_mask(self.field.sigma(x), t0, t1, ri, self.cfg.eps_transmittance)
+            ri, t0, t1, x = ri[keep], t0[keep], t1[keep], x[keep]
         sigma, geo = self.field.geometry(x)
         rgb = self.field.color(geo, directions[ri])
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background), ri.shape[0]
@@ -163,15 +169,20 @@ class NGPModel(Model):
             self.occupancy.update(self.field.sigma, self.step_size, step < cfg.occupancy_warmup,
                                   cfg.occupancy_decay, cfg.occupancy_threshold, generator=self.generator)
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
-        batch = sample_rays(data.rays(), cfg.rays_per_batch, self.generator)
-        out, n_samples = self._render_rays_train(batch["origins"], batch["directions"])
+        n_rays = self.n_rays
+        batch = sample_rays(data.rays(), n_rays, self.generator)
+        warm = step < cfg.occupancy_warmup
+        out, n_samples = self._render_rays_train(batch["origins"], batch["directions"], not warm)
         loss = torch.mean((out.rgb - batch["rgb"]) ** 2)
         self.optimizer.zero_grad(set_to_none=True)
         if loss.requires_grad:  # no sample at all (every ray missed): nothing to learn
             loss.backward()
             self.optimizer.step()
         mse = loss.item()
-        return {"loss": mse, "psnr": psnr(mse), "samples_per_ray": n_samples / cfg.rays_per_batch,
+        if cfg.samples_per_batch > 0:  # Instant-NGP: keep the samples per step, not the rays, fixed
+            wanted = cfg.samples_per_batch * n_rays / max(n_samples, 1)
+            self.n_rays = int(min(max(wanted, n_rays / 2, 64), 2 * n_rays, 1 << 16))  # at most x2 a step
+        return {"loss": mse, "psnr": psnr(mse), "samples_per_ray": n_samples / n_rays, "rays": n_rays,
                 "occupied": self.occupancy.occupancy_fraction()}
 
     @torch.no_grad()
@@ -183,11 +194,13 @@ class NGPModel(Model):
         return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
 
     def training_state(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state()}
+        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
+                "n_rays": self.n_rays}
 
     def load_training_state(self, state: dict) -> None:
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
+        self.n_rays = int(state["n_rays"])
 
     def stats(self) -> dict[str, float]:
         return {"parameters": float(sum(p.numel() for p in self.parameters())),
