@@ -250,7 +250,9 @@ def test_ring_cameras_sit_on_their_rings():
     cameras = ring_cameras(target, 1.9, (25.0, 50.0), 6, 250.0, 200, 180)
     assert len(cameras) == 12
     offset = cameras.centers - torch.tensor(target, dtype=torch.float64)
-    torch.testing.assert_close(offset.norm(dim=-1), torch.full((12,), 1.9, dtype=torch.float64))
+    torch.testing.assert_close(
+        offset.norm(dim=-1), torch.full((12,), 1.9, dtype=torch.float64), rtol=1e-14, atol=0
+    )
     elevation = torch.rad2deg(torch.asin(offset[:, 2] / 1.9))
     torch.testing.assert_close(
         elevation, torch.tensor([25.0] * 6 + [50.0] * 6, dtype=torch.float64)

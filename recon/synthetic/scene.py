@@ -279,10 +279,9 @@ def ring_cameras(
         e = math.radians(elevation)
         for k in range(views_per_ring):
             a = 2.0 * math.pi * (k + ring / len(elevations_deg)) / views_per_ring
-            offset = torch.tensor(
-                [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
-            )
-            poses.append(look_at(target_t + radius * offset.double(), target_t, up))
+            direction = [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
+            offset = torch.tensor(direction, dtype=torch.float64)
+            poses.append(look_at(target_t + radius * offset, target_t, up))
     C = len(poses)
     full = torch.full((C,), 1.0, dtype=torch.float64)
     K = intrinsics_matrix(focal * full, focal * full, 0.5 * width * full, 0.5 * height * full)
