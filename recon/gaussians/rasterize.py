@@ -342,13 +342,13 @@ def rasterize_features(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
 
     means2d (G, 2), conics (G, 3), opacities (G,), features (G, D), radii (G,) (0 = culled),
     depths (G,) -> image (H, W, D), transmittance (H, W). The numba kernels run on CPU tensors;
-    other devices fall back to the pure-torch twin `rasterize_ref.rasterize_features_ref`.
+    other devices use the vectorised torch version `rasterize_packed.rasterize_features_packed`.
     """
     if means2d.device.type != "cpu":
-        from recon.gaussians.rasterize_ref import rasterize_features_ref
+        from recon.gaussians.rasterize_packed import rasterize_features_packed
 
-        return rasterize_features_ref(means2d, conics, opacities, features, radii, depths,
-                                      width, height)
+        return rasterize_features_packed(means2d, conics, opacities, features, radii, depths,
+                                         width, height)
     with record_function("3dgs.bin"):
         bounds = tile_bounds(means2d, radii, width, height)
         tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height)
