@@ -69,7 +69,7 @@ class GaussiansConfig:
 PRESETS = {
     "paper": {},
     "fast": {
-        "init_points": 20_000, "init_from_images": True, "sh_degree_interval": 500, "lr_decay_steps": 5000,
+        "init_points": 4000, "init_from_images": True, "sh_degree_interval": 500, "lr_decay_steps": 5000,
         "densify_start": 100, "densify_stop": 2000, "densify_interval": 100,
         "opacity_reset_interval": 1000, "max_gaussians": 200_000, "default_steps": 3000,
     },
