@@ -159,3 +159,15 @@ def test_unbounded_scene_trains():
     assert losses[-1] < losses[0]
     out = model.render(data.cameras[1])
     assert torch.isfinite(out["rgb"]).all() and out["rgb"].shape == (16, 16, 3)
+
+
+def test_trunc_exp_value_and_clamped_gradient():
+    from recon.models.raymarch import trunc_exp
+
+    x = torch.tensor([-3.0, 0.0, 2.0, 20.0, 100.0], dtype=torch.float64, requires_grad=True)
+    y = trunc_exp(x)
+    torch.testing.assert_close(y[:4], torch.exp(x[:4]))
+    y.sum().backward()
+    expected = torch.exp(torch.tensor([-3.0, 0.0, 2.0, 15.0, 15.0], dtype=torch.float64))
+    torch.testing.assert_close(x.grad, expected)  # d/dx exp(x) below 15, exp(15) above
+    assert torch.autograd.gradcheck(trunc_exp, (torch.tensor([-1.0, 0.5, 3.0], dtype=torch.float64, requires_grad=True),))
