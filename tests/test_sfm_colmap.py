@@ -14,7 +14,7 @@ from PIL import Image
 from recon.cameras.conventions import opencv_c2w_from_opengl_c2w
 from recon.metrics.pose import pose_errors
 from recon.sfm import colmap_steps as steps
-from recon.sfm.colmap_diagnose import ImageMatchStats, unregistered_reason
+from recon.sfm.colmap_diagnose import ImageMatchStats, image_match_stats, unregistered_reason
 from recon.sfm.colmap_retry import retry_pairs
 from recon.sfm.colmap_sfm import (
     SfmConfig,
@@ -189,6 +189,19 @@ def test_fox_subset_with_an_unrelated_photo(tmp_path):
     assert [u["name"] for u in report["unregistered"]] == ["zz_noise.png"]
     assert "match" in report["unregistered"][0]["reason"]
     assert [a["registered"] for a in report["attempts"]] == [12, 12, 12]  # all 3 tried, none got 13
+    # The retries touched only the photo left out: new features for it, matched against all 12.
+    assert [a["retried_images"] for a in report["attempts"]] == [
+        [],
+        ["zz_noise.png"],
+        ["zz_noise.png"],
+    ]
+    assert [a["pairs_matched"] for a in report["attempts"]] == [78, 12, 12]
+    keypoints = [
+        image_match_stats(tmp_path / "work" / f"attempt{k}" / "database.db", 15) for k in (1, 2)
+    ]
+    # (the lower peak threshold finds more keypoints; white noise has few stable blobs anyway)
+    assert keypoints[1]["zz_noise.png"].num_keypoints > keypoints[0]["zz_noise.png"].num_keypoints
+    assert keypoints[1]["0001.jpg"].num_keypoints == keypoints[0]["0001.jpg"].num_keypoints
     points = [a["points3d"] for a in report["attempts"]]
     assert report["chosen_attempt"] == 1 + points.index(max(points))  # ties: most 3D points
     assert report["cameras"][0]["model"] == "PINHOLE"
