@@ -15,8 +15,9 @@ $(BIN)/recon: pyproject.toml
 	$(BIN)/pip install -q torch==2.13.0 -e '.[test]'
 	@touch $@
 
+# two xdist workers on two cores: one thread each, or OpenMP oversubscription costs 10-40x
 test: install
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile tests
+	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile tests
 
 lint: install
 	$(BIN)/ruff check recon tests pipelines

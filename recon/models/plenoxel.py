@@ -25,10 +25,12 @@ from recon.volrend import OccupancyGrid, ray_aabb_intersect, scene_to_unit_cube,
 
 @dataclass(frozen=True)
 class PlenoxelConfig:
-    resolutions: tuple = (64, 128, 256)  # coarse-to-fine lattice sizes
-    upsample_steps: tuple = (500, 2000)  # steps at which the grid moves to the next resolution
+    resolutions: tuple = (32, 64, 128, 256)  # coarse-to-fine lattice sizes
+    upsample_steps: tuple = (150, 500, 1500)  # steps at which the grid moves to the next resolution
     sh_degree: int = 2  # spherical-harmonic degree of the colour
-    rays_per_batch: int = 4096  # rays per training step
+    rays_per_batch: int = 4096  # rays of the first training step
+    samples_per_batch: int = 1 << 18  # target samples per step: the ray batch adapts (0 = fixed rays)
+    max_rays_per_batch: int = 16384  # upper bound of the adaptive ray batch
     step_voxels: float = 0.5  # marching step, in voxels of the current lattice
     lr_density: float = 0.1  # Adam learning rate of density (in per-voxel optical units)
     lr_sh: float = 0.02  # Adam learning rate of SH coefficients
@@ -56,6 +58,7 @@ class PlenoxelModel(Model):
         self.grid = SparseVoxelGrid(cfg.resolutions[0], {"density": 1, "sh": 3 * k}, {"density": 0.1})
         self.occupancy = OccupancyGrid(cfg.occupancy_res)
         self.generator = torch.Generator().manual_seed(0)
+        self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
         self._make_optimizer()
 
     # ---- field ---------------------------------------------------------------------------
@@ -183,7 +186,8 @@ class PlenoxelModel(Model):
             self.occupancy.update(self._sigma_unit, cell, warmup=step < 32, generator=self.generator)
         rays = data.rays()
         n = rays["rgb"].shape[0]
-        idx = torch.randint(0, n, (self.cfg.rays_per_batch,), generator=self.generator).to(rays["rgb"].device)
+        n_rays = self.n_rays
+        idx = torch.randint(0, n, (n_rays,), generator=self.generator).to(rays["rgb"].device)
         out = self.render_rays(rays["origins"][idx], rays["directions"][idx], jitter=True)
         mse = F.mse_loss(out["rgb"], rays["rgb"][idx])
         loss = mse + self._tv_loss()
@@ -193,8 +197,11 @@ class PlenoxelModel(Model):
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
             g["lr"] = base * decay
         self.optimizer.step()
+        if self.cfg.samples_per_batch > 0:  # Instant-NGP: a fixed sample budget per step, not fixed rays
+            wanted = self.cfg.samples_per_batch * n_rays / max(out["samples"], 1)
+            self.n_rays = int(min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch))
         return {"loss": float(loss.detach()), "psnr": -10.0 * math.log10(max(float(mse.detach()), 1e-10)),
-                "samples_per_ray": out["samples"] / self.cfg.rays_per_batch, "voxels": self.grid.num_rows}
+                "samples_per_ray": out["samples"] / n_rays, "rays": n_rays, "voxels": self.grid.num_rows}
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -218,11 +225,13 @@ class PlenoxelModel(Model):
         return super().load_state_dict(state, strict)
 
     def training_state(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state()}
+        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
+                "n_rays": self.n_rays}
 
     def load_training_state(self, state: dict) -> None:
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
+        self.n_rays = int(state["n_rays"])
 
     def stats(self) -> dict[str, float]:
         return {"parameters": sum(p.numel() for p in self.grid.data.values()), "voxels": self.grid.num_rows,
@@ -232,5 +241,5 @@ class PlenoxelModel(Model):
 register(MethodSpec(
     name="plenoxel", config_cls=PlenoxelConfig, build=PlenoxelModel,
     presets={"fast": {}, "paper": {"resolutions": (128, 256, 512), "upsample_steps": (2000, 5000),
-                                   "rays_per_batch": 5000, "default_steps": 12800}},
+                                   "rays_per_batch": 5000, "samples_per_batch": 0, "default_steps": 12800}},
 ))
