@@ -138,10 +138,13 @@ def test_format_is_sniffed_by_content(tmp_path):
     src = folder_with(tmp_path)
     save(src / "IMG_0001", blocks(96, 128, seed=7), format="JPEG", quality=95)
     save(src / "scan.bmp", blocks(96, 128, seed=8))
+    save(src / "my photo 1.png", blocks(96, 128, seed=12))
     photos = prepare_photos(src, tmp_path / "stage")
     by_source = {p.source.name: p for p in photos.photos}
     assert by_source["IMG_0001"].name == "IMG_0001.jpg"
     assert by_source["scan.bmp"].name == "scan.bmp.png"
+    assert by_source["my photo 1.png"].name == "my_photo_1.png"  # COLMAP pair lists split on spaces
+    assert (tmp_path / "stage" / "my_photo_1.png").is_symlink()
     assert Image.open(tmp_path / "stage" / "IMG_0001.jpg").format == "JPEG"
     bmp = np.asarray(Image.open(tmp_path / "stage" / "scan.bmp.png"))
     np.testing.assert_array_equal(bmp, blocks(96, 128, seed=8))

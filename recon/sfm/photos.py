@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,10 +159,12 @@ def conversion_reason(image: Image.Image, fmt: str, path: Path, rotated: bool) -
 
 
 def staged_name(path: Path, fmt: str, reason: str) -> str:
-    """Staging name: the source name, with a real image extension appended when needed."""
+    """Staging name: the source name with whitespace replaced by "_" (COLMAP's pair lists
+    are space-separated), plus a real image extension when the photo was converted."""
+    name = re.sub(r"\s", "_", path.name)
     if not reason or path.suffix.lower() in NATIVE_SUFFIXES and fmt in NATIVE_FORMATS:
-        return path.name
-    return path.name + NATIVE_FORMATS.get(fmt, ".png")
+        return name
+    return name + NATIVE_FORMATS.get(fmt, ".png")
 
 
 def inspect_photo(path: Path, min_side: int) -> Photo:
