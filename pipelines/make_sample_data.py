@@ -84,6 +84,7 @@ def transforms_json(cameras: Cameras, stems: list[str], scene: SceneConfig, rig:
         "p2": 0.0,
         "camera_angle_x": 2.0 * math.atan(0.5 * rig.width / K[0][0]),
         "depth_unit_scale_factor": 1.0,  # depth EXRs hold metres
+        "gt_mesh_path": "mesh.ply",  # recon's key for a ground-truth mesh (recon.sfm.sources)
         "generator": {
             "script": "pipelines/make_sample_data.py",
             "scene": asdict(scene),

@@ -336,7 +336,7 @@ def test_unprojected_depth_lies_on_the_ground_truth_mesh(sample):
     """transforms.json poses + depth EXRs + mesh.ply agree: unprojected depth of several views
     (OpenGL c2w converted to OpenCV) lands on the mesh surface."""
     meta, K, world_from_cam = sample
-    mesh = trimesh.load(SAMPLE / "mesh.ply", process=False)
+    mesh = trimesh.load(SAMPLE / meta["gt_mesh_path"], process=False)
     triangles = np.asarray(mesh.triangles)
     rng = np.random.default_rng(0)
     for i in (0, 17, 30):
