@@ -135,9 +135,9 @@ def generate(out: Path, scene: SceneConfig, rig: RigConfig, log=print) -> dict:
 @click.option(
     "--out",
     type=click.Path(file_okay=False, path_type=Path),
-    default=Path("sample_data"),
-    show_default=True,
-    help="Output folder (files inside are overwritten).",
+    default=Path(__file__).resolve().parents[1] / "sample_data",
+    show_default="the repository's sample_data/",
+    help="Output folder (files of the same name are overwritten).",
 )
 @click.option("--seed", type=int, default=SceneConfig.seed, show_default=True, help="Texture seed.")
 def main(out: Path, seed: int) -> None:
