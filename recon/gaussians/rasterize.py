@@ -40,6 +40,7 @@ ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
 T_MIN = 1e-4  # early termination: a pixel stops before T would fall below this
 SLACK = 1e-3  # relative widening of the alpha >= 1/255 ellipse used to skip pixels
 RECUR_MAX_A = 4.0  # conic x-curvatures up to this use the exp recurrence (no overflow risk)
+FORWARD_CHUNKS = 64  # parallel work items of the forward, each a strided set of tiles
 GRAD_COLUMNS = 6  # d mean2d (2), d conic (3), d opacity (1), then d features (D)
 
 
@@ -191,9 +192,13 @@ def _forward_kernel(means2d, conics, opacities, features, tile_start, gauss_ids,
     out_feat = np.zeros((height, width, features.shape[1]), features.dtype)
     out_T = np.ones((height, width), features.dtype)
     out_last = np.full((height, width), -1, np.int32)
-    for t in prange(tile_start.shape[0] - 1):
-        _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
-                      height, tile, consts, centers, out_feat, out_T, out_last)
+    n_tiles = tile_start.shape[0] - 1
+    # Interleaved chunks: prange hands out contiguous blocks, and a block of image rows can
+    # hold most of the work; tiles t, t + 64, ... cost about the same as any other such set.
+    for chunk in prange(FORWARD_CHUNKS):
+        for t in range(chunk, n_tiles, FORWARD_CHUNKS):
+            _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
+                          height, tile, consts, centers, out_feat, out_T, out_last)
     return out_feat, out_T, out_last
 
 
