@@ -18,7 +18,8 @@ def trained(tmp_path_factory):
     recon_cli("sfm", "--from-transforms", str(data), "-w", str(ws))
     recon_cli("train", "-w", str(ws), "--method", "plenoxel", "--steps", "150", "--eval-every", "5",
               "--eval-views", "2", "--set", "resolutions=24,48", "--set", "upsample_steps=80",
-              "--set", "rays_per_batch=2048", "--set", "occupancy_res=24", "--json")
+              "--set", "rays_per_batch=2048", "--set", "occupancy_res=24",
+              "--set", "samples_per_batch=0", "--json")
     return ws
 
 

@@ -15,7 +15,8 @@ from tests.conftest import REPO, recon_cli, write_sphere_dataset
 
 TRAIN = ["--method", "plenoxel", "--steps", "60", "--eval-views", "1", "--eval-every", "1000",
          "--checkpoint-every", "0.5", "--set", "resolutions=16,32", "--set", "upsample_steps=30",
-         "--set", "rays_per_batch=1024", "--set", "occupancy_res=16", "--threads", "1"]
+         "--set", "rays_per_batch=1024", "--set", "occupancy_res=16", "--set", "samples_per_batch=32768",
+         "--threads", "1"]
 
 
 @pytest.fixture(scope="module")

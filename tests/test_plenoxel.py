@@ -46,6 +46,7 @@ def test_plenoxel_learns_a_sphere():
     torch.manual_seed(0)
     data, info = sphere_scene()
     cfg = PlenoxelConfig(resolutions=(16, 32), upsample_steps=(60,), rays_per_batch=1024, lr_decay_steps=1000,
+                         samples_per_batch=1 << 15,
                          occupancy_res=16, chunk=4096)
     model = PlenoxelModel(cfg, info)
     baseline = 10 * math.log10(1 / data.images.var(dim=(0, 1, 2)).mean().item())
