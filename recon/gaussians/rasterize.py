@@ -8,10 +8,13 @@ index of the last contributor per pixel; the backward walks each list back to fr
 T_i = T_{i+1} / (1 - alpha_i) and S_i = sum_{j>i} T_j alpha_j f_j:
     dF/df_i = T_i alpha_i,   dF/dalpha_i = T_i f_i - S_i / (1 - alpha_i),
     dT_final/dalpha_i = -T_final / (1 - alpha_i).
-Tiles run in parallel (`prange`); within a tile each splat visits only the pixels inside its
-alpha >= 1/255 ellipse d^T conic d <= 2 ln(255 o) (row by row, slightly widened: an exact
-bound, so this changes speed, not results). Backward gradients go to one buffer per thread chunk, reduced once.
-`rasterize_ref.py` is the slow twin with the same semantics; tests compare the two.
+Tiles run in parallel (`prange` over interleaved tile chunks); within a tile each splat visits
+only the pixels inside its alpha >= 1/255 ellipse d^T conic d <= 2 ln(255 o), row by row and
+slightly widened (an exact bound: it changes speed, not results), with exp evaluated by an
+exact multiplicative recurrence along each row. Backward gradients go to one buffer per thread
+chunk, reduced once (deterministic for a given thread count). `rasterize_ref.py` is the slow
+twin with the same semantics, `rasterize_packed.py` the vectorised torch version used on other
+devices; tests compare all three on outputs and gradients.
 """
 
 from __future__ import annotations
