@@ -1,7 +1,8 @@
 """Fused CPU projection + SH colour (numba), forward and hand-derived backward, as a
 `torch.autograd.Function`. Same maths as `projection.project_gaussians` + `sh_colors` (its
 pure-torch twin; tests compare the two on outputs and gradients), in one pass per Gaussian
-instead of ~150 small torch ops and their autograd graph (measured ~10x cheaper at 50k).
+instead of ~150 small torch ops and their autograd graph: measured 40-53 ms against 80-83 ms
+of CPU time for forward + backward of 50k Gaussians at SH degree 3 on one (shared) core.
 
 Per Gaussian, in float64: p = R_w mu + t; q^ = q / max(|q|, eps); M = R(q^) diag(exp(s));
 rows of J R_w M: r0 = fx/z (M_c0 - u' M_c2), r1 = fy/z (M_c1 - v' M_c2) with u' = clamp(x/z),

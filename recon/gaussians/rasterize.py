@@ -33,9 +33,9 @@ from recon.gaussians.tiles import TILE, bin_gaussians, tile_bounds
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
     # numba's OpenMP layer loads the system libgomp, torch ships its own: two OpenMP runtimes
-    # whose idle threads spin against each other on a 2-core box (measured 10-20x slowdowns of
-    # interleaved torch/numba work). The workqueue layer's threads sleep instead. Takes effect
-    # only if no numba parallel region has run yet in this process.
+    # whose idle threads spin against each other on a 2-core box (interleaved torch/numba work
+    # measured several times slower, under load). The workqueue layer's threads sleep instead.
+    # Takes effect only if no numba parallel region has run yet in this process.
     numba.config.THREADING_LAYER = "workqueue"
 
 ALPHA_MAX = 0.99  # keeps 1 - alpha away from 0 so the backward can divide by it

@@ -1,7 +1,7 @@
 """SSIM for the training loss with a numba separable blur and a hand-derived backward; the
 same value as `pytorch_msssim.ssim` (11-tap Gaussian, sigma 1.5, valid windows, K = (0.01,
-0.03)), its twin in the tests, at a fraction of the cost (measured 17 -> ~6 ms at 200x200 and
-336 -> ~110 ms at 800x800 for forward + backward on one core).
+0.03)), its twin in the tests, at a fraction of the cost: the L1 + SSIM loss forward + backward
+measured 17 -> 4.4 ms at 200x200 and 336 -> 77 ms at 800x800 (CPU time, one shared core).
 
 Per channel, with m = blur(x), n = blur(y), s_xx = blur(x^2) - m^2, s_yy = blur(y^2) - n^2,
 s_xy = blur(xy) - m n:  SSIM = mean A B,  A = (2 m n + C1) / (m^2 + n^2 + C1),
