@@ -61,3 +61,19 @@ def test_existing_run_is_refused_and_resume_continues(trained):
     out = json.loads(recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--run", "plenoxel",
                                "--resume", "--steps", "160", "--json").stdout)
     assert out["steps"] == 160
+
+
+def test_3dgs_train_render_and_splat_export(trained):
+    from recon.gaussians.ply import read_splat_ply
+
+    recon_cli("train", "-w", str(trained), "--method", "3dgs", "--steps", "30", "--eval-views", "1",
+              "--set", "init_points=500")
+    recon_cli("render", "-w", str(trained), "--run", "3dgs")
+    out = json.loads(recon_cli("export", "-w", str(trained), "--run", "3dgs", "--json").stdout)
+    ply = read_splat_ply(out["path"])
+    means = ply["means"]
+    assert len(means) == out["gaussians"] > 0
+    # exported in the original units: the sphere (radius 0.5 at the origin) lies inside a ~1.5 m box
+    assert np.abs(means).max() < 3.0
+    proc = recon_cli("export", "-w", str(trained), "--run", "plenoxel", check=False)
+    assert proc.returncode != 0 and "3dgs" in proc.stderr
