@@ -54,13 +54,12 @@ def bench_method(ws: Path, method: str, budget: float) -> dict:
     train = recon("train", "-w", str(ws), "--method", method, "--time-budget", str(budget), "--threads", "2",
                   "--eval-every", str(max(budget / 10, 15)), "--eval-views", "4", "--force")
     ev = recon("eval", "-w", str(ws), "--run", method, "--every", "8")[method]
-    big = recon("render", "-w", str(ws), "--run", method, "--split", "test")
     sp = ev["speed"]
     return {
         "method": method, "time_budget_s": budget, "steps": train["steps"],
         "steps_per_s": sp["steps_per_s"], "test_psnr": ev["mean"]["psnr"], "test_ssim": ev["mean"]["ssim"],
         "test_lpips": ev["mean"].get("lpips"), "time_to_psnr_s": sp["time_to_psnr_s"],
-        "render_ms_per_frame_200": ev["render_ms_per_frame"], "render_ms_all_test": big["ms_per_frame"],
+        "render_ms_per_frame_200": ev["render_ms_per_frame"],
         "peak_rss_mb": sp["peak_rss_mb"], "parameters": sp["parameters"], "model_bytes": sp["model_bytes"],
         "model_stats": train.get("model_stats"), "stop_reason": train["stop_reason"],
         "psnr_curve": [(e["wall_s"], e["test_psnr"]) for e in _log(ws, method) if "test_psnr" in e],
@@ -100,7 +99,8 @@ def markdown(results: dict) -> str:
 @click.option("--budget-scale", default=1.0, show_default=True, help="Scale every time budget (quick runs).")
 @click.option("--skip-sfm", is_flag=True)
 @click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
-def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str) -> None:
+@click.option("--reuse", is_flag=True, help="Reuse per-method results of an interrupted benchmark (partial/).")
+def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse: bool) -> None:
     from recon.train.stage import import_methods
 
     available = import_methods()
@@ -109,13 +109,22 @@ def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str) -> Non
     results = {"date": date, "machine": machine, "matmul_gflops": matmul_gflops(),
                "load_average": os.getloadavg(), "budget_scale": budget_scale, "lego-200": []}
     ws = ROOT / "bench" / "work" / "lego-200"
-    recon("sfm", "--from-transforms", str(SHARED / "nerf_synthetic_lego_400"), "--downscale", "2", "-w", str(ws))
+    if not (ws / "sfm" / "cameras.json").exists():
+        recon("sfm", "--from-transforms", str(SHARED / "nerf_synthetic_lego_400"), "--downscale", "2", "-w", str(ws))
+    partial = Path(out_dir) / "partial"
+    partial.mkdir(parents=True, exist_ok=True)
     for m in [m for m in methods.split(",") if m in available]:
+        done = partial / f"lego-200-{m}.json"
+        if reuse and done.exists():
+            results["lego-200"].append(json.loads(done.read_text()))
+            continue
         print(f"bench: {m} ...", file=sys.stderr, flush=True)
         try:
-            results["lego-200"].append(bench_method(ws, m, BUDGETS[m] * budget_scale))
+            r = bench_method(ws, m, BUDGETS[m] * budget_scale)
+            done.write_text(json.dumps(r, indent=1))  # survives an interrupted benchmark
         except RuntimeError as e:
-            results["lego-200"].append({"method": m, "error": str(e).splitlines()[-1]})
+            r = {"method": m, "error": str(e).splitlines()[-1]}
+        results["lego-200"].append(r)
     recon("eval", "-w", str(ws), "--every", "8")  # the speed-vs-error plot across methods
     results["speed_vs_error_png"] = str(ws / "speed_vs_error.png")
     if not skip_sfm:
