@@ -4,9 +4,14 @@ import torch
 
 from recon.cameras import Cameras, camera_rays, project_points, unproject_pixels
 from recon.cameras.cameras import intrinsics_matrix, invert_rigid
-from recon.cameras.conventions import (opencv_c2w_from_opengl_c2w, opengl_c2w_from_opencv_c2w,
-                                       quat_wxyz_from_rotation, quat_wxyz_from_xyzw,
-                                       quat_xyzw_from_wxyz, rotation_from_quat_wxyz)
+from recon.cameras.conventions import (
+    opencv_c2w_from_opengl_c2w,
+    opengl_c2w_from_opencv_c2w,
+    quat_wxyz_from_rotation,
+    quat_wxyz_from_xyzw,
+    quat_xyzw_from_wxyz,
+    rotation_from_quat_wxyz,
+)
 
 
 def K_problem1():

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from recon.cameras import Cameras
-from recon.models.base import Model, MethodSpec, register
+from recon.models.base import MethodSpec, Model, register
 from recon.train.config import TrainConfig, apply_overrides, field_help
 from recon.train.loop import LoopState, run_loop, should_stop
 

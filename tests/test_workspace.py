@@ -44,10 +44,9 @@ def test_older_schema_is_migrated(tmp_path, monkeypatch):
 def test_atomic_path_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "out.txt"
     target.write_text("old")
-    with pytest.raises(RuntimeError):
-        with atomic_path(target) as tmp:
-            tmp.write_text("half-writ")
-            raise RuntimeError("disk full")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half-writ")
+        raise RuntimeError("disk full")
     assert target.read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
 
@@ -56,10 +55,9 @@ def test_atomic_dir_swaps_only_on_success(tmp_path):
     d = tmp_path / "sfm"
     d.mkdir()
     (d / "a").write_text("old")
-    with pytest.raises(RuntimeError):
-        with atomic_dir(d) as tmp:
-            (tmp / "a").write_text("new")
-            raise RuntimeError
+    with pytest.raises(RuntimeError), atomic_dir(d) as tmp:
+        (tmp / "a").write_text("new")
+        raise RuntimeError
     assert (d / "a").read_text() == "old"
     with atomic_dir(d) as tmp:
         (tmp / "b").write_text("new")

@@ -44,7 +44,7 @@ def command(workspace, run, fmt, frame, output, as_json):
     t0 = time.time()
     with atomic_path(out) as tmp:
         write_splat_ply(tmp, g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["sh"])
-    result = {"run": run, "path": str(out), "gaussians": int(len(g["means"])), "frame": frame,
+    result = {"run": run, "path": str(out), "gaussians": len(g["means"]), "frame": frame,
               "bytes": out.stat().st_size, "seconds": round(time.time() - t0, 3)}
     if as_json:
         emit_json(result)

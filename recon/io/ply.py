@@ -25,10 +25,9 @@ def write_points_ply(path: Path, points: np.ndarray, colors: np.ndarray | None =
     types = {"<f4": "float", "u1": "uchar"}
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
     header += [f"property {types[t]} {n}" for n, t in fields] + ["end_header"]
-    with atomic_path(Path(path)) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode())
-            f.write(arr.tobytes())
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode())
+        f.write(arr.tobytes())
 
 
 def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:

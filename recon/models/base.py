@@ -7,8 +7,8 @@ get images back. Each method module (`nerf`, `ngp`, `plenoxel`, `gaussians`) reg
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 from torch import Tensor, nn

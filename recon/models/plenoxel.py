@@ -19,8 +19,14 @@ from recon.cameras import Cameras, camera_rays
 from recon.fields.sh import C0, eval_sh, num_sh_bases
 from recon.fields.voxels import SparseVoxelGrid
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
+from recon.volrend import (
+    OccupancyGrid,
+    ray_aabb_intersect,
+    scene_to_unit_cube,
+    terminated_mask,
+    volume_render,
+)
 from recon.volrend.march_kernels import march_occupied
-from recon.volrend import OccupancyGrid, ray_aabb_intersect, scene_to_unit_cube, terminated_mask, volume_render
 
 
 @dataclass(frozen=True)

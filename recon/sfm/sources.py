@@ -64,7 +64,7 @@ def _image_size(path: Path) -> tuple[int, int]:
 
 def _intrinsics(meta: dict, frame: dict, path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Per-frame keys override top-level ones (nerfstudio); Blender has only camera_angle_x."""
-    get = lambda k: frame.get(k, meta.get(k))  # noqa: E731
+    get = lambda k: frame.get(k, meta.get(k))
     w, h = get("w"), get("h")
     if w is None or h is None:
         w, h = _image_size(path)

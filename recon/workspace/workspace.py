@@ -36,7 +36,7 @@ class WorkspaceError(Exception):
 
 
 def now_iso() -> str:
-    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
 
 
 def software_versions() -> dict:
@@ -236,8 +236,8 @@ class Workspace:
             "outputs": {self.rel(p): hash_tree(p) for p in outputs.values()},
             "upstream": upstream,
             "versions": software_versions(),
-            "started": dt.datetime.fromtimestamp(started, dt.timezone.utc).isoformat(timespec="seconds"),
-            "ended": dt.datetime.fromtimestamp(ended, dt.timezone.utc).isoformat(timespec="seconds"),
+            "started": dt.datetime.fromtimestamp(started, dt.UTC).isoformat(timespec="seconds"),
+            "ended": dt.datetime.fromtimestamp(ended, dt.UTC).isoformat(timespec="seconds"),
             "duration_s": round(ended - started, 3),
         }
         if extra:
