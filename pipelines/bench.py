@@ -125,8 +125,14 @@ def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse:
         except RuntimeError as e:
             r = {"method": m, "error": str(e).splitlines()[-1]}
         results["lego-200"].append(r)
-    recon("eval", "-w", str(ws), "--every", "8")  # the speed-vs-error plot across methods
-    results["speed_vs_error_png"] = str(ws / "speed_vs_error.png")
+    from recon.eval.report import plot_speed_vs_error
+    from recon.workspace import Workspace
+
+    plot_speed_vs_error(Workspace.open(ws), [r["method"] for r in results["lego-200"] if "error" not in r])
+    out_plot = Path(out_dir) / f"{date}-{machine}-speed_vs_error.png"
+    out_plot.parent.mkdir(parents=True, exist_ok=True)
+    out_plot.write_bytes((ws / "speed_vs_error.png").read_bytes())
+    results["speed_vs_error_png"] = str(out_plot.relative_to(ROOT))
     if not skip_sfm:
         out = Path(out_dir) / f"{date}-sfm-fox.json"
         subprocess.run([sys.executable, str(ROOT / "pipelines" / "bench_sfm.py"), "--out", str(out)], check=True,
