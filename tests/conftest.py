@@ -51,6 +51,20 @@ def make_blender_dataset(root: Path, n_train: int = 4, n_test: int = 2, size: in
 
 
 @pytest.fixture
+def one_thread():
+    """Tests run two per core under xdist; one thread each avoids OpenMP oversubscription."""
+    import numba
+    import torch
+
+    threads, nb = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+    numba.set_num_threads(nb)
+
+
+@pytest.fixture
 def blender_dataset(tmp_path) -> Path:
     return make_blender_dataset(tmp_path / "blender")
 

@@ -3,7 +3,6 @@ exact resume."""
 
 import copy
 
-import numba
 import pytest
 import torch
 from test_ngp import eval_psnr, mean_colour_psnr, sphere_scene
@@ -15,15 +14,7 @@ SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_
                    rays_per_batch=256, lr=5e-3, lr_final=5e-4, lr_decay_steps=150, chunk=1024)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tests run two per core under xdist; one thread each avoids OpenMP oversubscription."""
-    threads, nb = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-    numba.set_num_threads(nb)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_paper_preset_is_the_paper_architecture():

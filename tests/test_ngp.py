@@ -4,7 +4,6 @@ right shape, and resumes exactly from state_dict + training_state."""
 import copy
 import math
 
-import numba
 import pytest
 import torch
 
@@ -77,15 +76,7 @@ SMALL = NGPConfig(log2_table_size=14, n_max=128, n_levels=8, rays_per_batch=256,
                   occupancy_res=32, occupancy_warmup=16, occupancy_decay=0.6, lr_decay_steps=150, chunk=2048)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tests run two per core under xdist; one thread each avoids OpenMP oversubscription."""
-    threads, nb = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-    numba.set_num_threads(nb)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_registered_with_presets():
