@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from recon.models.base import METHODS, MethodSpec
-from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint
+from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint, save_torch
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
@@ -69,8 +69,7 @@ def model_path(ws: Workspace, run: str) -> Path:
 
 def save_model(ws: Workspace, run: str, method: str, method_cfg: dict, model) -> Path:
     path = model_path(ws, run)
-    with atomic_path(path) as tmp:
-        torch.save({"method": method, "config": method_cfg, "state_dict": model.state_dict()}, tmp)
+    save_torch({"method": method, "config": method_cfg, "state_dict": model.state_dict()}, path)
     return path
 
 
@@ -132,7 +131,19 @@ def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resum
                                                        if k in ("steps", "time_budget_s", "patience")}})
         else:
             method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
-        return _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
+        try:
+            return _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
+        except Exception:
+            if not resume:
+                discard_unresumable_run(ws, run)
+            raise
+
+
+def discard_unresumable_run(ws: Workspace, run: str) -> None:
+    """A new run that failed before any checkpoint landed (disk full, unreadable scene) holds
+    nothing to resume: remove it so a failed command leaves the workspace as it was."""
+    if not (ws.checkpoints_dir(run) / "index.json").exists():
+        shutil.rmtree(ws.run_dir(run), ignore_errors=True)
 
 
 def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress) -> dict:

@@ -26,12 +26,29 @@ def atomic_path(path: Path):
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}{path.suffix}")
     try:
-        yield tmp
-        _fsync_file(tmp)
-        os.replace(tmp, path)
+        with _naming_write_errors(path):
+            yield tmp
+            _fsync_file(tmp)
+            os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+class WriteError(OSError):
+    """An OSError of a write, with the output's path in its message."""
+
+
+@contextlib.contextmanager
+def _naming_write_errors(path: Path):
+    """A failed write (disk full, file too large, read-only) says which output it was for:
+    a bare `write()` OSError carries no file name, so the one-line CLI error would not either."""
+    try:
+        yield
+    except OSError as e:
+        if isinstance(e, WriteError) or e.filename is not None or e.errno is None:
+            raise
+        raise WriteError(e.errno, f"could not write {path}: {e.strerror}") from e
 
 
 def _fsync_file(path: Path) -> None:
@@ -66,7 +83,8 @@ def atomic_dir(path: Path):
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:
-        yield tmp
+        with _naming_write_errors(path):
+            yield tmp
         if path.exists():
             trash = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
             os.replace(path, trash)
