@@ -42,15 +42,16 @@ def undistort(img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndar
     return out, np.linalg.inv(shift) @ newK_cv
 
 
-def prepare_image(frame, cfg: SceneConfig, background) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Load, composite, undistort and downscale one image -> (rgb, K, had_alpha)."""
+def prepare_image(frame, cfg: SceneConfig, background) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Load, composite, undistort and downscale one image -> (rgb, K, mask of alpha > 0 at the
+    output size, or None without alpha; the mask is not undistorted: it only bounds the box)."""
     try:
         img = read_image(frame.path)
     except ValueError as e:
         raise SourceError(str(e)) from e
-    had_alpha = img.shape[-1] == 4
+    alpha = img[..., 3] if img.shape[-1] == 4 else None
     K = frame.K.copy()
-    img = composite(img, background) if had_alpha else img
+    img = composite(img, background) if alpha is not None else img
     if frame.dist is not None:
         img, K = undistort(img, K, frame.dist)
     if cfg.downscale > 1:
@@ -59,7 +60,18 @@ def prepare_image(frame, cfg: SceneConfig, background) -> tuple[np.ndarray, np.n
         img = resize_area(img, nw, nh)
         K[0, :] *= nw / w
         K[1, :] *= nh / h
-    return img, K, had_alpha
+    mask = resize_area(alpha, img.shape[1], img.shape[0]) > 0 if alpha is not None else None
+    return img, K, mask
+
+
+def prepare_depth(frame, width: int, height: int) -> np.ndarray | None:
+    """The frame's ground-truth z-depth map at the output size (nearest), or None."""
+    if frame.depth_path is None:
+        return None
+    from recon.io.exr import read_depth_exr
+
+    depth = read_depth_exr(frame.depth_path)
+    return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
 
 
 def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out: Path,
@@ -72,9 +84,11 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
     background = np.array(BACKGROUNDS[bg_name], dtype=np.float32)
     # one folder per split when names repeat across splits (Blender: train/r_0 and test/r_0)
     per_split = len({f.name for f in posed.frames}) < len(posed.frames)
-    records, Ks, sizes = [], [], []
+    records, Ks, sizes, masks, depths = [], [], [], [], []
     for i, frame in enumerate(posed.frames):
-        img, K, _ = prepare_image(frame, cfg, background)
+        img, K, mask = prepare_image(frame, cfg, background)
+        masks.append(mask)
+        depths.append(prepare_depth(frame, img.shape[1], img.shape[0]))
         rel = f"{frame.split}/{frame.name}.png" if per_split else f"{frame.name}.png"
         write_png(images_out / rel, img)
         records.append((frame, rel, img.shape[1], img.shape[0]))
@@ -84,7 +98,8 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
             progress("images", i + 1, len(posed.frames))
     Ks, sizes = np.stack(Ks), np.array(sizes, dtype=np.float64)
     world_from_cam = np.stack([f.world_from_cam for f in posed.frames])
-    sim, aabb = normalize_scene(world_from_cam, Ks, sizes, posed.points)
+    sim, aabb = normalize_scene(world_from_cam, Ks, sizes, posed.points, depths=depths,
+                                masks=masks if all(m is not None for m in masks) else None)
     scene_from_cam = sim.world_from_cam_to_scene(world_from_cam)
     bounded = has_alpha if cfg.scene == "auto" else cfg.scene == "bounded"
     frames_json = []
