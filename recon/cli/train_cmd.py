@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import click
 
@@ -45,12 +46,16 @@ def _list_options(method: str) -> str:
 @click.option("--device", default="auto", type=click.Choice(["auto", "cpu", "cuda"]), show_default=True)
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a method option (repeatable); see --list-options.")
+@click.option("--init-from-ply", "init_ply", default=None,
+              type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="3dgs: start from this INRIA splat PLY (world units, as `recon export` writes).")
 @click.option("--list-options", is_flag=True, help="List the method's options with their help and exit.")
 @click.option("--resume", is_flag=True, help="Continue an interrupted run from its last checkpoint.")
 @click.option("--force", is_flag=True, help="Overwrite an existing run / train on a stale sfm stage.")
 @json_option
 def command(workspace, method, run, preset, steps, time_budget, patience, eval_every, eval_views,
-            checkpoint_every, seed, threads, device, overrides, list_options, resume, force, as_json):
+            checkpoint_every, seed, threads, device, overrides, init_ply, list_options, resume, force,
+            as_json):
     """Train a scene representation -> WS/runs/RUN/ (run.json, log.jsonl, checkpoints/, model.pt).
 
     Without --steps, --time-budget or --patience the method's own step count applies.
@@ -61,6 +66,10 @@ def command(workspace, method, run, preset, steps, time_budget, patience, eval_e
     if list_options:
         click.echo(_list_options(method))
         return
+    if init_ply is not None:
+        if method != "3dgs":
+            raise click.UsageError("--init-from-ply is for --method 3dgs")
+        overrides = (*overrides, f"init_ply={init_ply.resolve()}")
     ws = Workspace.open(workspace)
     spec = import_methods()[method]
     if not (steps or time_budget or patience):

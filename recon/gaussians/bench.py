@@ -1,6 +1,7 @@
 """Speed benchmark of the 3dgs CPU path (a measurement, not a test: it asserts nothing).
 
     python -m recon.gaussians.bench --gaussians 50000 --sizes 200 800 --out bench_3dgs.json
+    python -m recon.gaussians.bench --workspace WS --warmup 600 --steps 40   # a real scene
 
 For each image size: render forward and forward+backward ms per frame (projection + SH +
 binning + rasterization), training steps/s of `GaussianModel.train_step` (SSIM loss, Adam, no
@@ -105,21 +106,50 @@ def bench_training(gaussians: dict, cameras: Cameras, steps: int) -> dict:
     """Steps/s of train_step at full SH degree, and its time split by `3dgs.*` labels (ms/step,
     measured under the profiler, which adds a little overhead)."""
     model, data = training_setup(gaussians, cameras)
-    for step in range(3):
-        model.train_step(data, step)
+    return profile_steps(model, data, 3, steps)
+
+
+def profile_steps(model: GaussianModel, data: TrainData, first: int, steps: int) -> dict:
+    """Time `steps` train steps from step `first` (after one warm-up step), then profile as
+    many more: steps/s, ms per `3dgs.*` label per step, the Gaussian count at the end."""
+    model.train_step(data, first)
     t0 = time.perf_counter()
-    for step in range(3, 3 + steps):
+    for step in range(first + 1, first + 1 + steps):
         model.train_step(data, step)
     steps_per_s = steps / (time.perf_counter() - t0)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        for step in range(3 + steps, 3 + 2 * steps):
+        for step in range(first + 1 + steps, first + 1 + 2 * steps):
             model.train_step(data, step)
     totals = {e.key: e.cpu_time_total for e in prof.key_averages()}
     split = {k: round(totals.get(f"3dgs.{k}", 0.0) / steps / 1000, 2) for k in LABELS}
     split["backward_other"] = round(split["backward"] - split["raster_backward"]
                                     - split["project_backward"], 2)
+    labelled = sum(split[k] for k in ("project", "rasterize", "loss", "backward", "optimizer",
+                                      "densify"))
+    split["unlabelled"] = round(1000 / steps_per_s - labelled, 2)  # Python, logging, view pick
     return {"steps_per_s": round(steps_per_s, 3), "ms_per_step_profiled": split,
             "gaussians": model.num_gaussians}
+
+
+def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str]) -> dict:
+    """Default (fast preset) training on a workspace's training views: `warmup` plain steps
+    (densification on, so the count is what training really sees), then `profile_steps`."""
+    from recon.train.config import build_config
+    from recon.workspace import Workspace
+    from recon.workspace.scene import load_scene, load_train_data
+
+    ws = Workspace.open(workspace)
+    scene = load_scene(ws)
+    data = load_train_data(ws, scene, "train")
+    config = build_config(GaussiansConfig, PRESETS, "fast", overrides)
+    model = GaussianModel(config, scene.info)
+    t0 = time.perf_counter()
+    for step in range(warmup):
+        model.train_step(data, step)
+    warm_s = time.perf_counter() - t0
+    return {"workspace": workspace, "warmup_steps": warmup, "warmup_s": round(warm_s, 1),
+            "size": [int(data.cameras.width[0]), int(data.cameras.height[0])],
+            **profile_steps(model, data, warmup, steps)}
 
 
 def main() -> None:
@@ -130,9 +160,20 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", default=None, help="also write the results to this JSON file")
+    parser.add_argument("--workspace", default=None, help="profile training on this workspace")
+    parser.add_argument("--warmup", type=int, default=600, help="--workspace: steps before timing")
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        help="--workspace: override a config field, KEY=VALUE (repeatable)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     numba.set_num_threads(args.threads)
+    if args.workspace:
+        result = bench_workspace(args.workspace, args.warmup, args.steps, args.overrides)
+        print(json.dumps(result), flush=True)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump(result, f, indent=2)
+        return
     gaussians = shell_gaussians(args.gaussians)
     results = {"gaussians": args.gaussians, "threads": args.threads, "sizes": {}}
     for size in args.sizes:

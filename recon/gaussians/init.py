@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from recon.fields.sh import C0, num_sh_bases
+from recon.gaussians.ply import read_splat_ply
 
 MIN_SQ_DIST = 1e-7  # the reference's floor: duplicate points still get a finite log-scale
 
@@ -108,3 +109,31 @@ def sample_in_hull(aabb: Tensor, n: int, images: Tensor, cameras, background: Te
         if total >= n:
             break
     return torch.cat(kept_p)[:n], torch.cat(kept_c)[:n].clamp(0, 1)
+
+
+def sh_degree_in_use(sh: np.ndarray) -> int:
+    """Highest degree l with a non-zero coefficient in sh (G, K, 3); 0 if only DC is set."""
+    degree = round(float(np.sqrt(sh.shape[1]))) - 1
+    while degree > 0 and not np.any(sh[:, degree * degree : (degree + 1) ** 2]):
+        degree -= 1
+    return degree
+
+
+def gaussians_from_splat_ply(path, scene_from_world, sh_degree: int) -> tuple[dict[str, Tensor], int]:
+    """An INRIA splat PLY in WORLD units (as `recon export` writes it) -> the model's attribute
+    tensors in the normalized scene frame x_scene = s R x_world + t, and the SH degree the file
+    uses (capped at sh_degree). The inverse of `export.splat.gaussians_to_world`, which it is:
+    that function with the inverse similarity (1/s, R^T, -R^T t / s) (means, log-scales - ln(1/s),
+    rotations R q, SH rotated per degree). SH above sh_degree are dropped."""
+    from recon.export.splat import gaussians_to_world
+
+    g = read_splat_ply(path)
+    s, R, t = float(scene_from_world.scale), np.asarray(scene_from_world.R, float), np.asarray(scene_from_world.t, float)
+    g = {k: v.astype(np.float64) for k, v in g.items()}
+    scene = gaussians_to_world(g, 1.0 / s, R.T, -(R.T @ t) / s)
+    K = num_sh_bases(sh_degree)
+    sh = torch.from_numpy(scene["sh"][:, :K]).float()
+    out = {name: torch.from_numpy(np.ascontiguousarray(scene[name])).float()
+           for name in ("means", "quats", "log_scales", "opacity_logits")}
+    out["sh_dc"], out["sh_rest"] = sh[:, :1].contiguous(), sh[:, 1:].contiguous()
+    return out, min(sh_degree_in_use(g["sh"]), sh_degree)

@@ -20,6 +20,7 @@ from recon.cameras import Cameras
 from recon.gaussians import densify
 from recon.gaussians.init import (
     gaussians_from_points,
+    gaussians_from_splat_ply,
     initial_gaussians,
     sample_in_hull,
     uses_random_init,
@@ -39,6 +40,7 @@ class GaussiansConfig:
     init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
     init_points: int = 100_000  # random initial Gaussians in the scene box
     init_from_images: bool = False  # random init: sample the visual hull, colours from images
+    init_ply: str = ""  # start from this INRIA splat PLY (world units, as `recon export` writes)
     init_opacity: float = 0.1  # initial opacity of every Gaussian
     sh_degree: int = 3  # largest SH degree of the colours
     sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
@@ -128,10 +130,19 @@ class GaussianModel(Model):
         self.register_buffer("background", scene.background.float().clone())
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
-        self.params = nn.ParameterDict(
-            {k: nn.Parameter(v) for k, v in initial_gaussians(config, scene).items()})
         self._aabb = scene.aabb.float().clone()
-        self._random_init = uses_random_init(config, scene)
+        self._min_sh_degree = 0  # a PLY start keeps the SH degrees it already has
+        if config.init_ply:
+            if scene.scene_from_world is None:
+                raise ValueError("init_ply needs the scene's scene_from_world similarity")
+            start, self._min_sh_degree = gaussians_from_splat_ply(
+                config.init_ply, scene.scene_from_world, config.sh_degree)
+            self._random_init = False
+            self.active_sh_degree.fill_(self._min_sh_degree)
+        else:
+            start = initial_gaussians(config, scene)
+            self._random_init = uses_random_init(config, scene)
+        self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in start.items()})
         self._reset_training_state()
 
     def _reset_training_state(self) -> None:
@@ -187,7 +198,8 @@ class GaussianModel(Model):
         device = self.params["means"].device
         if self.densify_state["grad2d"].device != device:  # the model was moved after init
             self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
-        self.active_sh_degree.fill_(min(c.sh_degree, step // max(c.sh_degree_interval, 1)))
+        scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
+        self.active_sh_degree.fill_(max(scheduled, self._min_sh_degree))
         set_lr(self.optimizer, "means", means_lr(c, step, extent))
         return extent
 

@@ -26,6 +26,7 @@ class SceneInfo:
     background: (3,) colour composited behind the scene (training images were composited on it).
     near, far: ray bounds in normalized units.
     points, point_colors: optional (P, 3) SfM points (normalized frame) and colours in [0, 1].
+    scene_from_world: the normalization, for inputs given in world units (a splat PLY to start from).
     """
 
     aabb: Tensor
@@ -35,6 +36,7 @@ class SceneInfo:
     far: float
     points: Tensor | None = None
     point_colors: Tensor | None = None
+    scene_from_world: object | None = None  # sfm.normalize.Similarity, x_scene = s R x_world + t
 
 
 @dataclass

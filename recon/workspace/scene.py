@@ -57,7 +57,7 @@ def load_scene(ws: Workspace, with_points: bool = True) -> Scene:
         unbounded=bool(doc["unbounded"]),
         background=torch.tensor(doc["background"], dtype=torch.float32),
         near=float(doc["near"]), far=float(doc["far"]),
-        points=points, point_colors=colors,
+        points=points, point_colors=colors, scene_from_world=sim,
     )
     return Scene(doc["frames"], sim, info, doc.get("gt_mesh"))
 
