@@ -8,15 +8,17 @@ import torch
 
 from recon.cameras import Cameras
 from recon.fields.sh import C0
+from recon.gaussians.bench import orbit_cameras
 from recon.gaussians.init import (
+    camera_box,
     gaussians_from_points,
     image_colors,
     initial_gaussians,
     knn_scales,
     sample_in_hull,
 )
-from recon.gaussians.model import PRESETS, GaussiansConfig
-from recon.models.base import SceneInfo
+from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
+from recon.models.base import SceneInfo, TrainData
 
 
 def test_knn_scale_worked_example():
@@ -74,3 +76,28 @@ def test_hull_sampling_drops_background_points():
     points, _ = sample_in_hull(aabb, 50, images, one_camera(), torch.zeros(3), seed=0)
     assert len(points) == 50
 
+
+
+def test_camera_box_worked_example():
+    centers = torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]])  # box [0, 2] x [0, 1] x [0, 0]
+    box = camera_box(centers, 3.0)  # centre (1, 0.5, 0), half-side 1 x 3
+    assert torch.allclose(box, torch.tensor([[-2.0, -2.5, -3.0], [4.0, 3.5, 3.0]]))
+
+
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_unbounded_image_init_also_fills_the_background(unbounded):
+    """Cameras on a radius-3 orbit, scene box [-0.5, 0.5]^3: a bounded scene keeps every
+    initial Gaussian in the box, an unbounded one puts init_far_fraction of them outside it."""
+    cameras = orbit_cameras(6, 32)
+    scene = SceneInfo(aabb=torch.tensor([[-0.5] * 3, [0.5] * 3]), unbounded=unbounded,
+                      background=torch.ones(3), near=0.1, far=100.0)
+    config = GaussiansConfig(**{**PRESETS["fast"], "init_points": 400})
+    model = GaussianModel(config, scene)
+    model._init_from_images(TrainData(torch.rand(6, 32, 32, 3) * 0.5, cameras))
+    means = model.params["means"].detach()
+    outside = (means.abs() > 0.5).any(-1).float().mean().item()
+    assert model.num_gaussians == 400
+    if unbounded:
+        assert 0.4 < outside <= 0.5 and means.abs().max() > 3.0
+    else:
+        assert outside == 0.0

@@ -111,6 +111,14 @@ def sample_in_hull(aabb: Tensor, n: int, images: Tensor, cameras, background: Te
     return torch.cat(kept_p)[:n], torch.cat(kept_c)[:n].clamp(0, 1)
 
 
+def camera_box(centers: Tensor, factor: float) -> Tensor:
+    """(2, 3) box around the camera centres (C, 3): their bounding box's centre +- factor x
+    its largest half-side. Unbounded captures put their background out here."""
+    lo, hi = centers.float().cpu().amin(0), centers.float().cpu().amax(0)
+    mid, half = (lo + hi) / 2, float((hi - lo).amax()) / 2 * factor
+    return torch.stack([mid - half, mid + half])
+
+
 def sh_degree_in_use(sh: np.ndarray) -> int:
     """Highest degree l with a non-zero coefficient in sh (G, K, 3); 0 if only DC is set."""
     degree = round(float(np.sqrt(sh.shape[1]))) - 1

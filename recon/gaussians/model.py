@@ -19,6 +19,7 @@ from torch.profiler import record_function
 from recon.cameras import Cameras
 from recon.gaussians import densify
 from recon.gaussians.init import (
+    camera_box,
     gaussians_from_points,
     gaussians_from_splat_ply,
     initial_gaussians,
@@ -40,6 +41,8 @@ class GaussiansConfig:
     init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
     init_points: int = 100_000  # random initial Gaussians in the scene box
     init_from_images: bool = False  # random init: sample the visual hull, colours from images
+    init_far_fraction: float = 0.5  # unbounded scenes: share of image init points in the far box
+    init_far_factor: float = 3.0  # the far box: the camera centres' box scaled by this
     init_ply: str = ""  # start from this INRIA splat PLY (world units, as `recon export` writes)
     init_opacity: float = 0.1  # initial opacity of every Gaussian
     sh_degree: int = 3  # largest SH degree of the colours
@@ -131,6 +134,7 @@ class GaussianModel(Model):
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
         self._aabb = scene.aabb.float().clone()
+        self._unbounded = bool(scene.unbounded)
         self._min_sh_degree = 0  # a PLY start keeps the SH degrees it already has
         if config.init_ply:
             if scene.scene_from_world is None:
@@ -207,10 +211,18 @@ class GaussianModel(Model):
     def _init_from_images(self, data: TrainData) -> None:
         """Replace the random Gaussians by ones sampled in the training images' visual hull and
         coloured by them (`init.sample_in_hull`): far fewer wasted splats when the capture is
-        composited on a plain background, image colours otherwise."""
+        composited on a plain background, image colours otherwise. Unbounded captures put
+        `init_far_fraction` of them in a box around the cameras (`init.camera_box`): the
+        background, which the scene box leaves out, starts with Gaussians too."""
         c = self.config
-        points, colors = sample_in_hull(self._aabb, c.init_points, data.images, data.cameras,
-                                        self.background, c.seed)
+        n_far = int(c.init_points * c.init_far_fraction) if self._unbounded else 0
+        points, colors = sample_in_hull(self._aabb, c.init_points - n_far, data.images,
+                                        data.cameras, self.background, c.seed)
+        if n_far:
+            box = camera_box(data.cameras.centers, c.init_far_factor)
+            far, far_colors = sample_in_hull(box, n_far, data.images, data.cameras,
+                                             self.background, c.seed + 1)
+            points, colors = torch.cat([points, far]), torch.cat([colors, far_colors])
         if len(points) < 4:  # nothing but background: keep the random start
             return
         device = self.params["means"].device
