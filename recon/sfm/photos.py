@@ -196,6 +196,15 @@ def stage_photo(photo: Photo, staging_dir: Path) -> None:
         image.save(target)
 
 
+def skipped_summary(skipped: list[tuple[str, str]], shown: int = 3) -> str:
+    """'a.jpg: unreadable (...); b.png: duplicate of c.png; +2 more' - which files and why, on
+    one line, so an error about too few photos says what happened to the others."""
+    parts = [f"{name}: {reason}" for name, reason in skipped[:shown]]
+    if len(skipped) > shown:
+        parts.append(f"+{len(skipped) - shown} more")
+    return "; ".join(parts)
+
+
 def prepare_photos(image_dir: Path, staging_dir: Path, min_side: int = 64) -> PhotoSet:
     """Validate every file of `image_dir` and stage the usable photos into `staging_dir`.
 
@@ -224,11 +233,13 @@ def prepare_photos(image_dir: Path, staging_dir: Path, min_side: int = 64) -> Ph
         photos.append(photo)
     if not photos:
         raise PhotoError(
-            f"no usable images in {image_dir} ({len(files)} files, {len(skipped)} skipped)"
+            f"no usable images in {image_dir} ({len(files)} files, {len(skipped)} skipped: "
+            f"{skipped_summary(skipped)})"
         )
     if len(photos) < 2:
+        why = f"; skipped: {skipped_summary(skipped)}" if skipped else ""
         raise PhotoError(
-            f"only 1 usable image in {image_dir} ({photos[0].source.name}); SfM needs at least 2"
+            f"only 1 usable image in {image_dir} ({photos[0].source.name}); SfM needs at least 2{why}"
         )
     staging_dir = Path(staging_dir)
     staging_dir.mkdir(parents=True, exist_ok=True)
