@@ -8,6 +8,7 @@ from scipy.spatial.distance import cdist
 from recon.metrics.geometry import (
     geometry_metrics,
     nearest_neighbors,
+    observed_by_depth,
     point_cloud_metrics,
     precision_recall_fscore,
 )
@@ -93,3 +94,32 @@ def test_point_cloud_and_array_inputs_skip_normals():
     assert out["chamfer"] == 0.0 and "normal_consistency" not in out
     with pytest.raises(ValueError):
         point_cloud_metrics(np.zeros((0, 3)), p, tau=0.1)
+
+
+def test_observed_by_depth_worked_example():
+    # a camera at the origin looking down +z, f = 10, c = (5, 5), 10 x 10 px, a wall at z = 2
+    K = np.array([[[10.0, 0, 5], [0, 10, 5], [0, 0, 1]]])
+    depth = [np.full((10, 10), 2.0)]
+    depth[0][:, 8:] = 0.0  # no surface in the last two columns
+    points = np.array([[0, 0, 2.0],  # on the wall: seen
+                       [0, 0, 3.0],  # behind the wall: occluded
+                       [0, 0, -1.0],  # behind the camera
+                       [100, 0, 2.0],  # outside the image
+                       [0.35, 0, 2.0]])  # pixel column 6.75 -> 6: seen; 0.65 -> column 8: no depth
+    expected = [True, False, False, False, True]
+    np.testing.assert_array_equal(observed_by_depth(points, np.eye(4)[None], K, depth, tol=0.1), expected)
+    assert not observed_by_depth(np.array([[0.65, 0, 2.0]]), np.eye(4)[None], K, depth, tol=0.1)[0]
+    # the same in units twice as small: a similarity x_cam = 2 x (depths stay in camera units)
+    half = np.diag([2.0, 2.0, 2.0, 1.0])[None]
+    np.testing.assert_array_equal(observed_by_depth(points / 2, half, K, depth, tol=0.1), expected)
+
+
+def test_unobserved_ground_truth_leaves_recall():
+    seen = np.random.default_rng(0).uniform(0, 1, (500, 3))
+    unseen = seen + np.array([5.0, 0, 0])  # e.g. the underside nobody photographed
+    gt = np.concatenate([seen, unseen])
+    observed = np.arange(len(gt)) < len(seen)
+    full = point_cloud_metrics(seen, gt, tau=0.01)
+    masked = point_cloud_metrics(seen, gt, tau=0.01, gt_observed=observed)
+    assert full["recall"] == 0.5 and masked["recall"] == 1.0
+    assert masked["precision"] == full["precision"] == 1.0 and masked["completeness"] == 0.0

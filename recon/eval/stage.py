@@ -71,7 +71,25 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
             "resolution": [int(cams.width[0]), int(cams.height[0])]}
 
 
-def geometry_section(ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: str | None) -> dict:
+def observed_fn(scene, tol: float):
+    """GT points -> seen by some view, from the dataset's depth maps (None without them)."""
+    from recon.metrics.geometry import observed_by_depth
+
+    frames = scene.frames
+    if not frames or not all(f.get("depth_gt") and Path(f["depth_gt"]).exists() for f in frames):
+        return None
+    sim = scene.scene_from_world
+    scene_from_orig = np.eye(4)
+    scene_from_orig[:3, :3], scene_from_orig[:3, 3] = sim.scale * sim.R, sim.t
+    orig_from_scene_units = np.diag([1 / sim.scale] * 3 + [1.0])  # camera frame back to original units
+    mats = np.stack([orig_from_scene_units @ np.asarray(f["cam_from_world"]) @ scene_from_orig for f in frames])
+    Ks = np.array([[[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1.0]] for f in frames])
+    depths = [cv2.resize(read_depth_exr(f["depth_gt"]), (f["width"], f["height"]), interpolation=cv2.INTER_NEAREST)
+              for f in frames]
+    return lambda points: observed_by_depth(points, mats, Ks, depths, tol)
+
+
+def geometry_section(ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: str | None, scene=None) -> dict:
     import trimesh
 
     from recon.metrics.geometry import geometry_metrics
@@ -88,7 +106,8 @@ def geometry_section(ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: st
     pred = trimesh.load(str(meshes[0]), process=False, force="mesh")
     diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
     tau = cfg.tau or 0.01 * diag
-    m = geometry_metrics(pred, gt, tau)
+    observed = observed_fn(scene, tau) if scene is not None and not cfg.gt_points else None
+    m = geometry_metrics(pred, gt, tau, gt_observed_fn=observed)
     return {"status": "ok", "gt": str(gt_path), "mesh": str(meshes[0]), "tau": tau,
             **{k: float(v) for k, v in m.items() if np.isscalar(v)}}
 
@@ -120,7 +139,7 @@ def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = Fals
         run_doc, log = _run_doc(ws, run), read_log(ws.log_jsonl(run))
         metrics = {"run": run, "method": run_doc["method"], "split": cfg.split, "lpips_network": lpips_note,
                    **image_metrics(ws, run, cfg, device, lpips_model),
-                   "geometry": geometry_section(ws, run, cfg, scene.gt_mesh),
+                   "geometry": geometry_section(ws, run, cfg, scene.gt_mesh, scene),
                    "pose": poses, "speed": speed_metrics(run_doc, log)}
         metrics = _finite(metrics)
         atomic_write_json(ws.eval_dir(run) / "metrics.json", metrics)
