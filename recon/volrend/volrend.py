@@ -45,7 +45,8 @@ def exclusive_cumsum(x: Tensor, ray_indices: Tensor | None = None) -> Tensor:
     x64 = x.double()
     before = torch.cumsum(x64, dim=0) - x64  # global exclusive sum
     first = torch.searchsorted(ray_indices, ray_indices)  # index of each ray's first sample
-    return (before - before[first]).to(x.dtype)
+    # index_select, not before[first]: its backward is index_add, deterministic on multi-threaded CPUs
+    return (before - before.index_select(0, first)).to(x.dtype)
 
 
 def render_transmittance(tau: Tensor, ray_indices: Tensor | None = None) -> Tensor:
