@@ -59,7 +59,8 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
     """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
 
     A non-finite loss is never trained on silently: it raises FloatingPointError at once (the
-    optimizer may already have written NaNs into the parameters) and the caller rolls back.
+    optimizer may already have written NaNs into the parameters) and the caller rolls back; so
+    do non-finite parameters found before a checkpoint or at the end.
     """
     model.train()
     total = cfg.steps or None
@@ -84,11 +85,23 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
                      best_test_psnr=None if st.best_psnr == -math.inf else round(st.best_psnr, 2),
                      t=f"{st.wall_s:.0f}s")
         if st.wall_s - st.last_ckpt_wall >= cfg.checkpoint_every_s:
+            require_finite_parameters(model, st, log)
             checkpoint(st)
             st.last_ckpt_wall = st.wall_s
+    require_finite_parameters(model, st, log)
     if held_cams is not None and st.last_eval_wall < st.wall_s:
         _evaluate(model, held_cams, held_imgs, cfg, st, log)
     return reason
+
+
+def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict], None]) -> None:
+    """Raise FloatingPointError if any parameter holds NaN/Inf. Checked before parameters are
+    kept (a checkpoint, the final model): an update can overflow on a step whose loss was still
+    finite, and no later loss would notice it."""
+    bad = [name for name, p in model.named_parameters() if not bool(torch.isfinite(p).all())]
+    if bad:
+        log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_parameters", "names": bad[:5]})
+        raise FloatingPointError(f"non-finite values in {', '.join(bad[:3])} after step {st.step}")
 
 
 def _evaluate(model, cams, imgs, cfg, st: LoopState, log) -> None:
