@@ -10,12 +10,12 @@ from recon.cameras import Cameras
 from recon.fields.sh import C0
 from recon.gaussians.bench import orbit_cameras
 from recon.gaussians.init import (
-    camera_box,
     gaussians_from_points,
     image_colors,
     initial_gaussians,
     knn_scales,
     sample_in_hull,
+    sample_in_shell,
 )
 from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.models.base import SceneInfo, TrainData
@@ -78,10 +78,16 @@ def test_hull_sampling_drops_background_points():
 
 
 
-def test_camera_box_worked_example():
-    centers = torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]])  # box [0, 2] x [0, 1] x [0, 0]
-    box = camera_box(centers, 3.0)  # centre (1, 0.5, 0), half-side 1 x 3
-    assert torch.allclose(box, torch.tensor([[-2.0, -2.5, -3.0], [4.0, 3.5, 3.0]]))
+def test_shell_points_lie_beyond_the_cameras_with_their_image_colours():
+    cameras = orbit_cameras(6, 32)  # centres at distance sqrt(3^2 + 0.5^2) from the origin
+    images = torch.rand(6, 32, 32, 3)
+    points, colors = sample_in_shell(torch.zeros(3), cameras.centers, 2.0, 300, images,
+                                     cameras, seed=0)
+    r0 = 1.1 * math.hypot(3.0, 0.5)
+    r = points.norm(dim=-1)
+    assert len(points) == 300 and (r >= r0 - 1e-4).all() and (r <= 2 * r0 + 1e-4).all()
+    expected, counts = image_colors(points, images, cameras)
+    assert (counts > 0).all() and torch.equal(colors, expected.clamp(0, 1))
 
 
 @pytest.mark.parametrize("unbounded", [False, True])
@@ -98,6 +104,6 @@ def test_unbounded_image_init_also_fills_the_background(unbounded):
     outside = (means.abs() > 0.5).any(-1).float().mean().item()
     assert model.num_gaussians == 400
     if unbounded:
-        assert 0.4 < outside <= 0.5 and means.abs().max() > 3.0
+        assert 0.4 < outside <= 0.5 and means.norm(dim=-1).max() > 3.3
     else:
         assert outside == 0.0

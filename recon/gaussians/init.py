@@ -111,12 +111,31 @@ def sample_in_hull(aabb: Tensor, n: int, images: Tensor, cameras, background: Te
     return torch.cat(kept_p)[:n], torch.cat(kept_c)[:n].clamp(0, 1)
 
 
-def camera_box(centers: Tensor, factor: float) -> Tensor:
-    """(2, 3) box around the camera centres (C, 3): their bounding box's centre +- factor x
-    its largest half-side. Unbounded captures put their background out here."""
-    lo, hi = centers.float().cpu().amin(0), centers.float().cpu().amax(0)
-    mid, half = (lo + hi) / 2, float((hi - lo).amax()) / 2 * factor
-    return torch.stack([mid - half, mid + half])
+def sample_in_shell(center: Tensor, centers: Tensor, factor: float, n: int, images: Tensor,
+                    cameras, seed: int, rounds: int = 20) -> tuple[Tensor, Tensor]:
+    """Up to n points uniform in the volume of the shell r0 <= |x - center| <= factor r0 that
+    some view sees, with their median image colours; r0 = 1.1 x the largest camera distance
+    from `center`. Unbounded captures keep their background out there; a shell beyond every
+    camera keeps initial Gaussians from sitting in front of a lens and filling whole images.
+    center (3,), centers (C, 3) camera centres -> points (M, 3), colours (M, 3), M <= n."""
+    gen = torch.Generator().manual_seed(seed)
+    center = center.float().cpu()
+    r0 = 1.1 * float((centers.float().cpu() - center).norm(dim=-1).max())
+    r1 = factor * r0
+    kept_p, kept_c, total = [], [], 0
+    for _ in range(rounds):
+        d = torch.randn(n, 3, generator=gen)
+        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        u = torch.rand(n, 1, generator=gen)
+        r = (r0**3 + u * (r1**3 - r0**3)) ** (1 / 3)  # uniform in the shell's volume
+        points = center + r * d
+        colors, counts = image_colors(points, images.cpu(), cameras.to("cpu"))
+        kept_p.append(points[counts > 0])
+        kept_c.append(colors[counts > 0])
+        total += int((counts > 0).sum())
+        if total >= n:
+            break
+    return torch.cat(kept_p)[:n], torch.cat(kept_c)[:n].clamp(0, 1)
 
 
 def sh_degree_in_use(sh: np.ndarray) -> int:

@@ -19,11 +19,11 @@ from torch.profiler import record_function
 from recon.cameras import Cameras
 from recon.gaussians import densify
 from recon.gaussians.init import (
-    camera_box,
     gaussians_from_points,
     gaussians_from_splat_ply,
     initial_gaussians,
     sample_in_hull,
+    sample_in_shell,
     uses_random_init,
 )
 from recon.gaussians.optim import make_adam, set_lr
@@ -41,8 +41,8 @@ class GaussiansConfig:
     init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
     init_points: int = 100_000  # random initial Gaussians in the scene box
     init_from_images: bool = False  # random init: sample the visual hull, colours from images
-    init_far_fraction: float = 0.5  # unbounded scenes: share of image init points in the far box
-    init_far_factor: float = 3.0  # the far box: the camera centres' box scaled by this
+    init_far_fraction: float = 0.5  # unbounded scenes: share of image init points in a far shell
+    init_far_factor: float = 3.0  # the far shell's outer / inner radius (inner: beyond the cameras)
     init_ply: str = ""  # start from this INRIA splat PLY (world units, as `recon export` writes)
     init_opacity: float = 0.1  # initial opacity of every Gaussian
     sh_degree: int = 3  # largest SH degree of the colours
@@ -212,16 +212,16 @@ class GaussianModel(Model):
         """Replace the random Gaussians by ones sampled in the training images' visual hull and
         coloured by them (`init.sample_in_hull`): far fewer wasted splats when the capture is
         composited on a plain background, image colours otherwise. Unbounded captures put
-        `init_far_fraction` of them in a box around the cameras (`init.camera_box`): the
-        background, which the scene box leaves out, starts with Gaussians too."""
+        `init_far_fraction` of them in a shell beyond the cameras (`init.sample_in_shell`):
+        the background, which the scene box leaves out, starts with Gaussians too."""
         c = self.config
         n_far = int(c.init_points * c.init_far_fraction) if self._unbounded else 0
         points, colors = sample_in_hull(self._aabb, c.init_points - n_far, data.images,
                                         data.cameras, self.background, c.seed)
         if n_far:
-            box = camera_box(data.cameras.centers, c.init_far_factor)
-            far, far_colors = sample_in_hull(box, n_far, data.images, data.cameras,
-                                             self.background, c.seed + 1)
+            far, far_colors = sample_in_shell(self._aabb.mean(0), data.cameras.centers,
+                                              c.init_far_factor, n_far, data.images,
+                                              data.cameras, c.seed + 1)
             points, colors = torch.cat([points, far]), torch.cat([colors, far_colors])
         if len(points) < 4:  # nothing but background: keep the random start
             return
