@@ -20,7 +20,7 @@ def start_train(ws, run, steps, *extra):
 
 
 def test_two_runs_with_different_names_both_work(sphere_ws):
-    procs = {run: start_train(sphere_ws, run, 15) for run in ("left", "right")}
+    procs = {run: start_train(sphere_ws, run, 5) for run in ("left", "right")}
     for run, proc in procs.items():
         _, err = proc.communicate(timeout=300)
         assert proc.returncode == 0, err

@@ -28,7 +28,7 @@ class Blowup(Model):
             self.color -= 0.5 * torch.autograd.grad(loss, self.color)[0]
             if step == self.bad_step:
                 self.color[1] = self.value
-        return {"loss": float(loss)}
+        return {"loss": float(loss.detach())}
 
     def render(self, camera):
         h, w = int(camera.height[0]), int(camera.width[0])
