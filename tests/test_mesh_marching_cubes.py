@@ -10,6 +10,7 @@ from recon.mesh.marching_cubes import (
     extract_density_mesh,
     grid_shape,
     mesh_from_grid,
+    soft_field_threshold,
 )
 
 # An off-centre ellipsoid in a non-cubic box: a swapped axis or a wrong origin shows up at once.
@@ -51,6 +52,26 @@ def test_threshold_worked_example():
     assert sigma == pytest.approx(math.log(2) * 127.5)
     assert 1 - math.exp(-sigma * h) == pytest.approx(0.5)  # one voxel of it is half opaque
     assert choose_density_threshold(0.1, opacity=0.9) == pytest.approx(math.log(10) / 0.1)
+
+
+def test_soft_field_threshold_worked_example():
+    assert soft_field_threshold(150.0, np.array([4.0, 9.0, 40.0])) == 9.0  # softer than a voxel
+    assert soft_field_threshold(150.0, np.array([400.0, 900.0])) == 150.0  # sharper: the voxel level
+    assert soft_field_threshold(150.0, np.array([np.nan])) == 150.0  # no rendered surface
+
+
+def test_soft_field_threshold_meshes_a_blurry_sphere():
+    """A sphere blurred over ~10 voxels never reaches ln 2 / h; the level at the surface does."""
+    def blurry(p):
+        return 20.0 * torch.sigmoid((0.6 - p.norm(dim=-1)) / 0.05)
+
+    aabb = np.array([[-1.0] * 3, [1.0] * 3])
+    _, h = grid_shape(aabb, 64)
+    assert len(extract_density_mesh(blurry, aabb, 64, choose_density_threshold(h)).faces) == 0
+    surface = blurry(torch.tensor([[0.6, 0.0, 0.0], [0.0, 0.61, 0.0], [0.0, 0.0, -0.59]])).numpy()
+    level = soft_field_threshold(choose_density_threshold(h), surface)
+    radius = np.linalg.norm(extract_density_mesh(blurry, aabb, 64, level).vertices, axis=1)
+    assert np.abs(radius - 0.6).max() < 0.02
 
 
 def test_grid_shape_is_isotropic():

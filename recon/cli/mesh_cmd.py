@@ -18,7 +18,8 @@ from recon.workspace import Workspace
               help="auto: marching cubes on density (nerf/ngp/plenoxel), TSDF fusion of rendered depth (3dgs).")
 @click.option("--resolution", default=256, show_default=True, help="Samples/voxels along the box's longest side.")
 @click.option("--threshold", default=0.0, show_default=True,
-              help="Marching-cubes density level (0: ln2 / voxel size, i.e. opacity 0.5 across one voxel).")
+              help="Marching-cubes density level (0: ln2 / voxel size, i.e. opacity 0.5 across one voxel, or "
+                   "the median density at the surface of rendered training views if that is lower).")
 @click.option("--truncation", default=0.02, show_default=True, help="TSDF truncation (fraction of the box side).")
 @click.option("--min-component", default=0.02, show_default=True,
               help="Remove connected components with fewer than this fraction of the faces.")

@@ -33,6 +33,22 @@ def choose_density_threshold(voxel_size: float, opacity: float = 0.5) -> float:
     return -math.log1p(-opacity) / voxel_size
 
 
+def soft_field_threshold(voxel_threshold: float, surface_density: np.ndarray) -> float:
+    """min(sigma*_voxel, median sigma(x_s)) over points x_s where training renders put the surface.
+
+    A field softer than one voxel (early in training, or a blurry region) never reaches
+    sigma*_voxel = ln 2 / h and its level set at that value is empty or shredded; its own renders
+    still show a surface at the expected depth, so the level through the median of those points
+    is used instead. A field sharper than one voxel keeps sigma*_voxel. Example: sigma*_voxel =
+    150 and densities (4, 9, 40) at the rendered surface -> 9; densities (400, 900) -> 150.
+    """
+    values = np.asarray(surface_density, np.float64).reshape(-1)
+    values = values[np.isfinite(values)]
+    if len(values) == 0:
+        return float(voxel_threshold)
+    return float(min(voxel_threshold, np.median(values)))
+
+
 def grid_shape(aabb, resolution: int) -> tuple[tuple[int, int, int], float]:
     """Samples per axis and spacing h = (longest side) / (resolution - 1) for aabb (2, 3)."""
     lo, hi = np.asarray(aabb, np.float64)

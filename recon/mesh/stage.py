@@ -14,7 +14,11 @@ import numpy as np
 import torch
 
 from recon.mesh.cleanup import mesh_stats, remove_small_components, transform_mesh, write_mesh
-from recon.mesh.marching_cubes import choose_density_threshold, extract_density_mesh
+from recon.mesh.marching_cubes import (
+    choose_density_threshold,
+    extract_density_mesh,
+    soft_field_threshold,
+)
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
 from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
@@ -24,7 +28,8 @@ from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 class MeshConfig:
     method: str = "auto"  # auto | marching-cubes | tsdf
     resolution: int = 256  # samples (marching cubes) or voxels (TSDF) along the box's longest side
-    threshold: float = 0.0  # marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel)
+    threshold: float = 0.0  # marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel), or less for a field softer than that (soft_field_threshold)
+    threshold_views: int = 6  # training views rendered to find the density at the rendered surface (threshold 0)
     truncation: float = 0.02  # TSDF truncation as a fraction of the box's longest side
     min_component: float = 0.02  # components with fewer faces than this fraction are removed
     format: str = "ply"  # ply | obj | glb
@@ -37,6 +42,24 @@ def _has_density(model) -> bool:
         return True
     except NotImplementedError:
         return False
+
+
+def rendered_surface_density(model, scene, cfg: MeshConfig, device) -> np.ndarray:
+    """Density (N,) at the expected depth of the pixels with opacity > 0.5 in a few training views."""
+    from recon.cameras import camera_rays
+
+    idx = scene.split("train")
+    idx = idx[:: max(1, len(idx) // max(1, cfg.threshold_views))][: cfg.threshold_views]
+    cams = scene.cameras(idx, device)
+    values = []
+    with torch.no_grad():
+        for i in range(len(cams)):
+            out = model.render(cams[i])
+            origins, dirs, z_per_t = camera_rays(cams, i)
+            hit = out["acc"] > 0.5
+            points = (origins + dirs * (out["depth"] / z_per_t)[..., None])[hit]
+            values.append(model.density(points.reshape(-1, 3)).reshape(-1).float().cpu().numpy())
+    return np.concatenate(values) if values else np.zeros(0)
 
 
 def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, progress=None) -> dict:
@@ -53,7 +76,8 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         if not _has_density(model):
             raise WorkspaceError(f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf")
         side = float((aabb[1] - aabb[0]).max())
-        threshold = cfg.threshold or choose_density_threshold(side / cfg.resolution)
+        threshold = cfg.threshold or soft_field_threshold(
+            choose_density_threshold(side / cfg.resolution), rendered_surface_density(model, scene, cfg, device))
         color_fn = getattr(model, "color", None)
         mesh = extract_density_mesh(model.density, aabb, cfg.resolution, threshold, color_fn=color_fn,
                                     device=device)
