@@ -13,7 +13,7 @@ from recon.volrend import (
     terminated_mask,
     volume_render,
 )
-from recon.volrend.occupancy import _unwarp, _warp, cell_points, cells_of
+from recon.volrend.occupancy import _unwarp, _warp, cell_points, cells_of, ray_spans
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 CENTRE, RADIUS, SIGMA = torch.tensor([0.2, -0.1, 0.0]), 0.4, 30.0
@@ -123,3 +123,26 @@ def test_terminated_mask_drops_after_opaque():
     t = torch.arange(6.0)
     ri = torch.tensor([0, 0, 0, 1, 1, 1])
     assert terminated_mask(sig, t, t + 1, ri).tolist() == [True, True, False, True, True, True]
+
+
+def test_ray_spans_worked_example_and_empty_rays():
+    ri = torch.tensor([0, 0, 2])
+    lo, hi = ray_spans(ri, torch.tensor([1.0, 3.0, 5.0]), torch.tensor([2.0, 4.0, 6.0]), 3)
+    assert lo.tolist() == [1.0, 0.0, 5.0] and hi.tolist() == [4.0, 0.0, 6.0]
+    lo, hi = ray_spans(ri, torch.tensor([1.0, 3.0, 0.2]), torch.tensor([2.0, 4.0, 6.0]), 3, pad=0.5)
+    assert lo.tolist() == [0.5, 0.0, 0.0] and hi.tolist() == [4.5, 0.0, 6.5]  # clamped at t = 0
+
+
+def test_march_dispatch_equals_sample_and_spans_hold_every_occupied_sample():
+    grid, step = trained_grid(sphere_density)
+    o, d = rays()
+    t_min, t_max, _ = ray_aabb_intersect(o, d, AABB)
+    u = torch.rand(o.shape[0], generator=torch.Generator().manual_seed(1))
+    ref = grid.sample(o, d, t_min, t_max, lambda p: scene_to_unit_cube(p, AABB, False), step, 0.0, u)
+    ri, s, e = grid.march(o, d, t_min, t_max, AABB, False, step, 0.0, u)
+    assert torch.equal(ri, ref[0]) and torch.allclose(s, ref[1]) and torch.allclose(e, ref[2])
+    lo, hi = ray_spans(ri, s, e, o.shape[0])
+    assert (lo[ri] <= s).all() and (e <= hi[ri]).all()
+    missed = torch.ones(o.shape[0], dtype=torch.bool)
+    missed[ri] = False
+    assert missed.any() and (lo[missed] == 0).all() and (hi[missed] == 0).all()

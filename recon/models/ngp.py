@@ -94,9 +94,13 @@ class NGPField(nn.Module):
         """sigma (N,) alone: the density closure the occupancy grid is updated from."""
         return self.geometry(x_unit)[0]
 
-    def color(self, geo: Tensor, directions: Tensor) -> Tensor:
-        """rgb (N, 3) in (0, 1) from the geometry feature and the SH-encoded unit direction."""
-        return torch.sigmoid(self.color_mlp(torch.cat([geo, sh_basis(self.sh_degree, directions)], -1)))
+    def encode_directions(self, directions: Tensor) -> Tensor:
+        """SH basis (R, (deg + 1)^2) of unit directions (R, 3): computed once per ray, gathered per sample."""
+        return sh_basis(self.sh_degree, directions)
+
+    def color(self, geo: Tensor, dir_enc: Tensor) -> Tensor:
+        """rgb (N, 3) in (0, 1) from the geometry feature (N, 15) and the encoded direction (N, K)."""
+        return torch.sigmoid(self.color_mlp(torch.cat([geo, dir_enc], -1)))
 
 
 class NGPModel(Model):
@@ -133,8 +137,8 @@ class NGPModel(Model):
         u = uniform((origins.shape[0],), t_min, self.generator) if jitter else None
         cone = self.cfg.cone_angle if self.scene.unbounded else 0.0
         with torch.no_grad():
-            ri, t0, t1 = self.occupancy.sample(origins, directions, t_min, t_max, self.to_unit,
-                                               self.step_size, cone, u)
+            ri, t0, t1 = self.occupancy.march(origins, directions, t_min, t_max, self.aabb,
+                                              self.scene.unbounded, self.step_size, cone, u)
             x = self.to_unit(origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri])
         return ri, t0, t1, x
 
@@ -149,7 +153,7 @@ class NGPModel(Model):
                 keep = terminated_mask(self.field.sigma(x), t0, t1, ri, self.cfg.eps_transmittance)
             ri, t0, t1, x = ri[keep], t0[keep], t1[keep], x[keep]
         sigma, geo = self.field.geometry(x)
-        rgb = self.field.color(geo, directions[ri])
+        rgb = self.field.color(geo, self.field.encode_directions(directions)[ri])
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background), ri.shape[0]
 
     @torch.no_grad()
@@ -159,7 +163,7 @@ class NGPModel(Model):
         sigma, geo = self.field.geometry(x)
         keep = terminated_mask(sigma, t0, t1, ri, self.cfg.eps_transmittance)
         ri, t0, t1, sigma = ri[keep], t0[keep], t1[keep], sigma[keep]
-        rgb = self.field.color(geo[keep], directions[ri])
+        rgb = self.field.color(geo[keep], self.field.encode_directions(directions)[ri])
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background)
 
     # ---- Model interface ---------------------------------------------------------------------

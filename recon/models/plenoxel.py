@@ -26,7 +26,6 @@ from recon.volrend import (
     terminated_mask,
     volume_render,
 )
-from recon.volrend.march_kernels import march_occupied
 
 
 @dataclass(frozen=True)
@@ -120,13 +119,8 @@ class PlenoxelModel(Model):
             t_min = t_min.clamp_min(self.scene.near)
             cone = self.cfg.cone_angle
         u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
-        if origins.device.type == "cpu":  # numba twin of OccupancyGrid.sample
-            ray_idx, t0, t1 = march_occupied(origins, dirs, t_min, t_max, self.occupancy.occupied,
-                                             self.occupancy.resolution, self.aabb, self.scene.unbounded,
-                                             self._step_t(), cone, u)
-        else:
-            ray_idx, t0, t1 = self.occupancy.sample(origins, dirs, t_min, t_max, self.to_unit,
-                                                    self._step_t(), cone, u)
+        ray_idx, t0, t1 = self.occupancy.march(origins, dirs, t_min, t_max, self.aabb, self.scene.unbounded,
+                                               self._step_t(), cone, u)
         if ray_idx.numel():
             with torch.no_grad():  # cheap density pre-pass for early termination
                 mids = 0.5 * (t0 + t1)
@@ -159,7 +153,7 @@ class PlenoxelModel(Model):
         loss = 0.0
         for name, w in (("density", self.cfg.tv_density), ("sh", self.cfg.tv_sh)):
             p = self.grid.data[name]
-            diff = p[a] - p[b]
+            diff = p.index_select(0, a) - p.index_select(0, b)  # backward index_add: deterministic
             loss = loss + w * diff.pow(2).mean()
         return loss
 

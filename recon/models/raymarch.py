@@ -42,6 +42,17 @@ def render_image(render_rays: RenderRaysFn, camera: Cameras, chunk: int) -> dict
     return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
 
 
+def scatter_rays(values: Tensor, index: Tensor, n: int, fill: Tensor | None) -> Tensor:
+    """Per-ray values (K, ...) of the rays `index` (K,) placed into (n, ...) rows, the other rows
+    set to `fill` (broadcast to one row; None: 0). Differentiable in `values`."""
+    if index.numel() == n:
+        return values
+    out = torch.zeros((n, *values.shape[1:]), dtype=values.dtype, device=values.device)
+    if fill is not None:
+        out = out + fill.to(values)
+    return out.index_copy(0, index, values)
+
+
 def ray_bounds(scene: SceneInfo, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
     """(t_min, t_max) per ray: the scene box clipped to [near, far] for a bounded scene (rays
     that miss get t_min = t_max, i.e. no samples), [near, far] for an unbounded one."""

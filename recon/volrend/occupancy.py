@@ -20,6 +20,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
+from recon.volrend.contraction import scene_to_unit_cube
+from recon.volrend.march_kernels import march_occupied
 from recon.volrend.samplers import uniform
 from recon.volrend.volrend import render_transmittance
 
@@ -91,6 +93,24 @@ def terminated_mask(
     Packed (N,) inputs -> (N,) bool. Dropped samples carry at most eps of each ray's weight."""
     trans = render_transmittance(sigmas * (t_ends - t_starts), ray_indices)
     return trans >= eps
+
+
+def ray_spans(ray_indices: Tensor, t_starts: Tensor, t_ends: Tensor, n_rays: int,
+              pad: float = 0.0) -> tuple[Tensor, Tensor]:
+    """Per-ray hull [min t_start - pad, max t_end + pad] of packed intervals (N,) -> (R,) x2.
+
+    Rays without any interval get t_first = t_last = 0 (an empty range: no sample). The pad
+    keeps the part of an occupied cell that an interval with its midpoint outside still covers.
+    Example: ray_indices [0, 0, 2], starts [1, 3, 5], ends [2, 4, 6], R = 3 -> ([1, 0, 5], [4, 0, 6]).
+    """
+    first = torch.full((n_rays,), math.inf, dtype=t_starts.dtype, device=t_starts.device)
+    last = torch.full((n_rays,), -math.inf, dtype=t_ends.dtype, device=t_ends.device)
+    first = first.scatter_reduce(0, ray_indices, t_starts, "amin")
+    last = last.scatter_reduce(0, ray_indices, t_ends, "amax")
+    hit = last > first
+    zero = torch.zeros_like(first)
+    first = torch.where(hit, (first - pad).clamp_min(0.0), zero)
+    return first, torch.where(hit, last + pad, zero)
 
 
 class OccupancyGrid(nn.Module):
@@ -171,3 +191,25 @@ class OccupancyGrid(nn.Module):
         x = origins[ray_indices] + mids[:, None] * directions[ray_indices]
         keep = self.is_occupied(to_unit(x))
         return ray_indices[keep], starts[keep], ends[keep]
+
+    @torch.no_grad()
+    def march(
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        t_min: Tensor,
+        t_max: Tensor,
+        aabb: Tensor,
+        unbounded: bool,
+        step: float,
+        cone_angle: float = 0.0,
+        u: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """`sample` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
+        numba twin (`march_kernels.march_occupied`, never materialises the dense intervals),
+        elsewhere `sample` itself. Same packed (ray_indices, t_starts, t_ends)."""
+        if origins.device.type == "cpu":
+            return march_occupied(origins, directions, t_min, t_max, self.occupied, self.resolution, aabb,
+                                  unbounded, step, cone_angle, u)
+        return self.sample(origins, directions, t_min, t_max,
+                           lambda x: scene_to_unit_cube(x, aabb, unbounded), step, cone_angle, u)
