@@ -88,10 +88,30 @@ def markdown(results: dict) -> str:
             f"{r['test_psnr']:.2f}", f"{r['test_ssim']:.4f}", "–" if lp is None else f"{lp:.4f}",
             str(r["time_to_psnr_s"].get("25")), f"{r['render_ms_per_frame_200']:.0f}", f"{r['peak_rss_mb']:.0f}",
             str(int(r["parameters"] or 0)), f"{(r['model_bytes'] or 0) / 1e6:.1f} |"]))
-    sfm = results.get("sfm_fox")
+    lines += ["", "Held-out PSNR during training (4 views, from log.jsonl) at 2 / 5 / 10 / 30 min:", ""]
+    for r in results["lego-200"]:
+        if "error" not in r:
+            at = [_psnr_at(r["psnr_curve"], t) if t <= r["time_budget_s"] * 1.02 else None
+                  for t in (120, 300, 600, 1800)]
+            lines.append(f"- {r['method']}: " + " / ".join("–" if p is None else f"{p:.2f}" for p in at))
+    sfm = {k[4:]: v for k, v in results.items() if k.startswith("sfm_")}
     if sfm:
-        lines += ["", "## sfm on fox (67 photos)", "", "```", json.dumps(sfm, indent=1)[:3000], "```"]
+        lines += ["", "## sfm (pycolmap through `run_sfm`, default options)", "",
+                  ("| scene | registered | median rot err ° | median centre err % diag | features s | matching s "
+                   "| mapping s | total wall s | load avg before |"), "|---|---|---|---|---|---|---|---|---|"]
+        for scene, r in sfm.items():
+            acc, ph = r.get("accuracy_vs_reference", {}), r["phases"]["wall_s"]
+            lines.append(f"| {scene} | {r['images_registered']}/{r['images_given']} | "
+                         f"{acc.get('median_rotation_error_deg')} | {acc.get('median_center_error_pct')} | "
+                         f"{ph.get('features')} | {ph.get('matching')} | {ph.get('mapping')} | "
+                         f"{r['total_wall_s']} | {r['load_average_1min_before_after'][0]} |")
     return "\n".join(lines) + "\n"
+
+
+def _psnr_at(curve: list, t: float) -> float | None:
+    """The last held-out PSNR logged at or before training time t (None before the first)."""
+    before = [p for w, p in curve if w <= t + 1e-6]
+    return before[-1] if before else None
 
 
 @click.command()
@@ -134,10 +154,14 @@ def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse:
     out_plot.write_bytes((ws / "speed_vs_error.png").read_bytes())
     results["speed_vs_error_png"] = str(out_plot.relative_to(ROOT))
     if not skip_sfm:
-        out = Path(out_dir) / f"{date}-sfm-fox.json"
-        subprocess.run([sys.executable, str(ROOT / "pipelines" / "bench_sfm.py"), "--out", str(out)], check=True,
-                       cwd=ROOT)
-        results["sfm_fox"] = json.loads(out.read_text())
+        for scene, images, transforms in (("sample", ROOT / "sample_data" / "images", ROOT / "sample_data" / "transforms.json"),
+                                          ("fox", SHARED / "fox" / "images", SHARED / "fox" / "transforms.json")):
+            out = partial / f"sfm-{scene}.json"
+            if not (reuse and out.exists()):
+                print(f"bench: sfm {scene} ...", file=sys.stderr, flush=True)
+                subprocess.run([sys.executable, str(ROOT / "pipelines" / "bench_sfm.py"), "--images", str(images),
+                                "--transforms", str(transforms), "--out", str(out)], check=True, cwd=ROOT)
+            results[f"sfm_{scene}"] = json.loads(out.read_text())
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{date}-{machine}.json").write_text(json.dumps(results, indent=1) + "\n")

@@ -137,3 +137,10 @@ def write_sphere_dataset(root: Path, n_train: int = 12, n_test: int = 3, size: i
                 "gt_mesh_path": "mesh.ply", "frames": frames}
         (root / f"transforms_{split}.json").write_text(json.dumps(meta))
     return root
+
+
+def sphere_workspace(root: Path, n_train: int = 6, n_test: int = 1, size: int = 24) -> Path:
+    """`recon sfm --from-transforms` on the analytic sphere dataset: a workspace ready to train."""
+    data = write_sphere_dataset(root / "sphere", n_train=n_train, n_test=n_test, size=size)
+    recon_cli("sfm", "--from-transforms", str(data), "-w", str(root / "ws"))
+    return root / "ws"

@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 
-from tests.conftest import REPO, recon_cli, write_sphere_dataset
+from tests.conftest import REPO, recon_cli, sphere_workspace
 
 TRAIN = ["--method", "plenoxel", "--steps", "60", "--eval-views", "1", "--eval-every", "1000",
          "--checkpoint-every", "0.5", "--set", "resolutions=16,32", "--set", "upsample_steps=30",
@@ -21,10 +21,7 @@ TRAIN = ["--method", "plenoxel", "--steps", "60", "--eval-views", "1", "--eval-e
 
 @pytest.fixture(scope="module")
 def ws(tmp_path_factory):
-    root = tmp_path_factory.mktemp("interrupt")
-    data = write_sphere_dataset(root / "sphere", n_train=6, n_test=1, size=24)
-    ws = root / "ws"
-    recon_cli("sfm", "--from-transforms", str(data), "-w", str(ws))
+    ws = sphere_workspace(tmp_path_factory.mktemp("interrupt"))
     recon_cli("train", "-w", str(ws), "--run", "straight", *TRAIN)
     return ws
 

@@ -34,6 +34,12 @@ def command(workspace, runs, split, every, gt_mesh, gt_points, tau, gt_poses, no
     if as_json:
         emit_json(results)
         return
+    if "sfm" in results:
+        p = results["sfm"]["pose"]
+        click.echo(f"eval: sfm poses vs {p['reference']}: {p['matched']} matched, median rotation error "
+                   f"{p['median_rotation_error_deg']:.3f} deg, median centre error {p['median_center_error_pct']:.3f} % "
+                   f"of the diagonal -> {ws.sfm_dir / 'pose_accuracy.json'}")
+        return
     for run, m in results.items():
         mean = m["mean"]
         lp = f"{mean['lpips']:.4f}" if "lpips" in mean else "unavailable"

@@ -125,8 +125,13 @@ def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = Fals
     from recon.workspace.scene import load_scene
 
     runs = runs or [r for r in ws.runs() if model_path(ws, r).exists()]
+    if not runs and cfg.gt_poses:  # the sfm stage alone: pose accuracy, before any training
+        poses = pose_section(ws, cfg)
+        atomic_write_json(ws.sfm_dir / "pose_accuracy.json", poses)
+        return {"sfm": {"pose": poses}}
     if not runs:
-        raise WorkspaceError(f"no trained run in {ws.root}: run `recon train` first")
+        raise WorkspaceError(f"no trained run in {ws.root}: run `recon train` first "
+                             "(or pass --gt-poses to evaluate the sfm poses alone)")
     device = pick_device(cfg.device)
     lpips_model = load_lpips(device) if cfg.lpips else None
     lpips_note = NETWORK if lpips_model is not None else "LPIPS unavailable (weights could not be obtained)"

@@ -111,6 +111,15 @@ def prepare_run(ws: Workspace, run: str, resume: bool, force: bool) -> None:
         raise WorkspaceError(f"cannot resume: run '{run}' does not exist")
 
 
+def set_threads(n: int) -> None:
+    """Use `n` CPU threads in torch and in the numba kernels (capped by NUMBA_NUM_THREADS, which
+    numba fixes at import). Results are reproducible for a fixed thread count."""
+    import numba
+
+    torch.set_num_threads(n)
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+
+
 def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resume: bool,
           force: bool, log_fn=print, progress=None) -> dict:
     """Train (or resume) run `run`; returns the run summary written to run.json."""
@@ -120,7 +129,7 @@ def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resum
         raise WorkspaceError(f"unknown method {cfg.method!r} (available: {', '.join(sorted(methods))})")
     spec = methods[cfg.method]
     if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+        set_threads(cfg.threads)
     device = pick_device(cfg.device)
     with ws.writer_lock(f"run-{run}"):
         prepare_run(ws, run, resume, force)

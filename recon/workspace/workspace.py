@@ -17,6 +17,7 @@ import fcntl
 import json
 import os
 import platform
+import sys
 import time
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
@@ -45,6 +46,9 @@ def software_versions() -> dict:
 
     out = {"recon": recon.__version__, "python": platform.python_version(),
            "torch": torch.__version__, "threads": torch.get_num_threads()}
+    if "numba" in sys.modules:
+        out["numba"] = sys.modules["numba"].__version__
+        out["numba_threads"] = sys.modules["numba"].get_num_threads()
     with contextlib.suppress(Exception):
         import importlib.metadata as md
 
