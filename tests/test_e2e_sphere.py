@@ -2,6 +2,7 @@
 sfm (pose import) -> train -> render -> mesh -> eval, and resume / bad-run handling."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -76,4 +77,14 @@ def test_3dgs_train_render_and_splat_export(trained):
     # exported in the original units: the sphere (radius 0.5 at the origin) lies inside a ~1.5 m box
     assert np.abs(means).max() < 3.0
     proc = recon_cli("export", "-w", str(trained), "--run", "plenoxel", check=False)
+    assert proc.returncode != 0 and "3dgs" in proc.stderr
+    # the exported file seeds a new run through the CLI flag (round trip of the PLY format)
+    recon_cli("train", "-w", str(trained), "--method", "3dgs", "--run", "from-ply", "--init-from-ply",
+              out["path"], "--steps", "1", "--eval-views", "1")
+    run = json.loads((trained / "runs" / "from-ply" / "run.json").read_text())
+    assert run["config"]["init_ply"] == str(Path(out["path"]).resolve())
+    assert json.loads(recon_cli("export", "-w", str(trained), "--run", "from-ply", "--json").stdout)[
+        "gaussians"] == out["gaussians"]  # one step densifies nothing
+    proc = recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--run", "x", "--init-from-ply",
+                     out["path"], check=False)
     assert proc.returncode != 0 and "3dgs" in proc.stderr
