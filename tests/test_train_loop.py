@@ -90,3 +90,22 @@ def test_rollback_after_nan_in_a_real_run(tmp_path):
     assert summary["steps"] == 20 and summary["status"] == "done"
     log = [json.loads(ln) for ln in ws.log_jsonl("toy").read_text().splitlines()]
     assert [e["event"] for e in log if e.get("event") in ("non_finite_loss", "rollback")] == ["non_finite_loss", "rollback"]
+    rollback = next(e for e in log if e.get("event") == "rollback")
+    assert rollback["lr_scale"] == 0.5 and "loss became nan" in rollback["cause"]
+
+
+def test_learning_rate_scale_applies_during_step_only():
+    from recon.train.stage import LearningRateScale
+
+    p = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.SGD([p], lr=0.3)
+    with LearningRateScale() as scale:
+        p.grad = torch.ones(1)
+        opt.step()
+        assert float(p.detach()) == pytest.approx(-0.3)
+        scale.scale = 0.25
+        opt.step()
+        assert float(p.detach()) == pytest.approx(-0.3 - 0.075)
+        assert opt.param_groups[0]["lr"] == 0.3  # the schedule's value is restored exactly
+    opt.step()  # hooks removed on exit
+    assert float(p.detach()) == pytest.approx(-0.3 - 0.075 - 0.3)

@@ -25,6 +25,35 @@ from recon.workspace.workspace import software_versions
 
 MODEL_FILE = "model.pt"
 MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
+ROLLBACK_LR_FACTOR = 0.5  # every rollback halves all learning rates for the rest of the process
+
+
+class LearningRateScale:
+    """Scale every optimizer's learning rates by `scale` for the duration of each `step()`, on
+    top of whatever schedule the model set (global torch optimizer step hooks, so optimizers a
+    model rebuilds later, e.g. after upsampling or densification, are covered too). Powers of two
+    keep lr * s / s exact, so the model's own schedule is restored bit for bit after the step."""
+
+    def __init__(self):
+        self.scale = 1.0
+        self._handles = []
+
+    def __enter__(self) -> LearningRateScale:
+        from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
+
+        self._handles = [register_optimizer_step_pre_hook(lambda opt, *_: self._apply(opt, self.scale)),
+                         register_optimizer_step_post_hook(lambda opt, *_: self._apply(opt, 1 / self.scale))]
+        return self
+
+    @staticmethod
+    def _apply(optimizer: torch.optim.Optimizer, factor: float) -> None:
+        if factor != 1.0:
+            for group in optimizer.param_groups:
+                group["lr"] = group["lr"] * factor
+
+    def __exit__(self, *exc) -> None:
+        for h in self._handles:
+            h.remove()
 
 
 def import_methods() -> dict[str, MethodSpec]:
@@ -194,7 +223,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
             "loop": {k: v for k, v in state.__dict__.items()}, "rng": torch.get_rng_state(),
         }, cfg.keep_checkpoints)
 
-    def rollback() -> LoopState:
+    def rollback(cause: str) -> LoopState:
         """Reload the last good checkpoint after a non-finite loss; the RNG moves on, so the
         retried steps see other rays / views."""
         ck = load_latest_checkpoint(ckpt_dir, log_fn)
@@ -206,8 +235,11 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         state = LoopState(**ck["loop"])
         torch.manual_seed(cfg.seed + 7919 * (rollbacks + 1))
         model.reseed(cfg.seed + 7919 * (rollbacks + 1))
-        log({"step": state.step, "wall_s": state.wall_s, "event": "rollback", "count": rollbacks + 1})
-        log_fn(f"non-finite loss: rolled back to step {state.step} (rollback {rollbacks + 1} of {MAX_ROLLBACKS})")
+        lr_scale.scale *= ROLLBACK_LR_FACTOR
+        log({"step": state.step, "wall_s": state.wall_s, "event": "rollback", "count": rollbacks + 1,
+             "cause": cause, "lr_scale": lr_scale.scale})
+        log_fn(f"{cause}: rolled back to step {state.step}, learning rates x{lr_scale.scale:g} "
+               f"(rollback {rollbacks + 1} of {MAX_ROLLBACKS})")
         return state
 
     checkpoint(st)  # a known-good state to roll back to
@@ -219,16 +251,17 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     rollbacks = 0
     try:
-        while True:
-            try:
-                reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress,
-                                  interrupted=lambda: stop["requested"])
-                break
-            except FloatingPointError:
-                if rollbacks >= MAX_ROLLBACKS:
-                    raise
-                st = rollback()
-                rollbacks += 1
+        with LearningRateScale() as lr_scale:
+            while True:
+                try:
+                    reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress,
+                                      interrupted=lambda: stop["requested"])
+                    break
+                except FloatingPointError as e:
+                    if rollbacks >= MAX_ROLLBACKS:
+                        raise
+                    st = rollback(str(e))
+                    rollbacks += 1
     except KeyboardInterrupt:
         checkpoint(st)
         log({"step": st.step, "wall_s": st.wall_s, "event": "interrupted"})
