@@ -56,7 +56,21 @@ def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: 
     return row
 
 
-def bench_scene(scene: str, methods: list[str], budget: float, resolution: int, work: Path) -> dict:
+def train_or_reuse(ws: Path, method: str, budget: float, reuse: bool) -> dict:
+    """Train a run for `budget` seconds, or, with reuse, read the finished run's record."""
+    run_json = ws / "runs" / method / "run.json"
+    if reuse and run_json.exists() and (ws / "runs" / method / "model.pt").exists():
+        doc = json.loads(run_json.read_text())
+        return {"steps": doc["steps"], "stop_reason": doc["stop_reason"], "reused": True}
+    print(f"bench_mesh: {ws.name} {method} train {budget:.0f} s ...", file=sys.stderr, flush=True)
+    started = time.time()
+    train = recon("train", "-w", str(ws), "--method", method, "--run", method, "--time-budget", str(budget),
+                  "--threads", "2", "--eval-every", str(max(budget / 6, 15)), "--eval-views", "2", "--force")
+    return {"steps": train["steps"], "stop_reason": train["stop_reason"], "wall_s": round(time.time() - started, 1)}
+
+
+def bench_scene(scene: str, methods: list[str], budget: float, resolution: int, work: Path,
+                reuse: bool = False) -> dict:
     ws = work / scene
     if not (ws / "sfm" / "cameras.json").exists():
         recon("sfm", *SCENES[scene]["sfm"], "-w", str(ws))
@@ -64,12 +78,7 @@ def bench_scene(scene: str, methods: list[str], budget: float, resolution: int, 
     out = {"scene": scene, "workspace": str(ws), "aabb_scene": cams["aabb"],
            "scene_scale": cams["scene_from_world"]["scale"], "rows": [], "training": {}}
     for method in methods:
-        print(f"bench_mesh: {scene} {method} train {budget:.0f} s ...", file=sys.stderr, flush=True)
-        started = time.time()
-        train = recon("train", "-w", str(ws), "--method", method, "--run", method, "--time-budget", str(budget),
-                      "--threads", "2", "--eval-every", str(max(budget / 6, 15)), "--eval-views", "2", "--force")
-        out["training"][method] = {"steps": train["steps"], "stop_reason": train["stop_reason"],
-                                   "wall_s": round(time.time() - started, 1)}
+        out["training"][method] = train_or_reuse(ws, method, budget, reuse)
         for mesher in MESHERS[method]:
             print(f"bench_mesh: {scene} {method} {mesher} ...", file=sys.stderr, flush=True)
             try:
@@ -77,6 +86,19 @@ def bench_scene(scene: str, methods: list[str], budget: float, resolution: int, 
             except RuntimeError as e:
                 out["rows"].append({"run": method, "mesher": mesher, "error": str(e).splitlines()[-1]})
     return out
+
+
+def keep_other_methods(res: dict, previous: Path) -> None:
+    """Keep the rows of methods this invocation did not run from the previous results file
+    (e.g. `--methods ngp --reuse-runs` re-meshes ngp only), naming the date they come from."""
+    if not previous.exists():
+        return
+    old = json.loads(previous.read_text())
+    kept = [r for r in old.get("rows", []) if r["run"] not in res["training"]]
+    for r in kept:
+        r.setdefault("from_results_of", old.get("date"))
+        res["training"].setdefault(r["run"], old["training"][r["run"]])
+    res["rows"] += kept
 
 
 def markdown(res: dict) -> str:
@@ -95,7 +117,7 @@ def markdown(res: dict) -> str:
             lines.append(f"| {r['run']} | {r['mesher']} | failed: {r['error'][:80]} |")
             continue
         lines.append(" | ".join([
-            f"| {r['run']}", r["mesher"], str(res["training"][r["run"]]["steps"]), str(r["faces"]),
+            f"| {r['run']}" + (f" ({r['from_results_of'][:16]})" if "from_results_of" in r else ""), r["mesher"], str(res["training"][r["run"]]["steps"]), str(r["faces"]),
             fmt(r.get("chamfer")), fmt(r.get("accuracy")), fmt(r.get("completeness")), fmt(r.get("precision"), ".3f"),
             fmt(r.get("recall"), ".3f"), fmt(r.get("fscore"), ".3f"), fmt(r.get("normal_consistency"), ".3f"),
             fmt(r.get("gt_observed_fraction"), ".3f"),
@@ -113,14 +135,17 @@ def markdown(res: dict) -> str:
 @click.option("--resolution", default=256, show_default=True, help="Mesh samples along the box's longest side.")
 @click.option("--work", default=str(ROOT / "bench" / "work"), show_default=True, help="Workspaces folder.")
 @click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
-def main(scenes: str, methods: str, budget: float, resolution: int, work: str, out_dir: str) -> None:
+@click.option("--reuse-runs", is_flag=True, help="Mesh and score finished runs again instead of retraining.")
+def main(scenes: str, methods: str, budget: float, resolution: int, work: str, out_dir: str,
+         reuse_runs: bool) -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for scene in scenes.split(","):
         load = os.getloadavg()
-        res = bench_scene(scene, methods.split(","), budget, resolution, Path(work) / "mesh")
+        res = bench_scene(scene, methods.split(","), budget, resolution, Path(work) / "mesh", reuse_runs)
         res.update({"date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "budget_s": budget,
                     "load_average": [round(x, 2) for x in load], "resolution": resolution})
+        keep_other_methods(res, out / f"mesh_{scene}.json")
         (out / f"mesh_{scene}.json").write_text(json.dumps(res, indent=1) + "\n")
         (out / f"mesh_{scene}.md").write_text(markdown(res))
         print(markdown(res))
