@@ -7,8 +7,11 @@ import pytest
 import torch
 from test_ngp import eval_psnr, mean_colour_psnr, sphere_scene
 
+from recon.cameras.rays import camera_rays
 from recon.models.base import METHODS, SceneInfo
 from recon.models.nerf import PRESETS, NeRFConfig, NeRFMLP, NeRFModel
+from recon.models.raymarch import ray_bounds
+from recon.volrend.occupancy import cell_points
 
 SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_fine=16,
                    rays_per_batch=256, lr=5e-3, lr_final=5e-4, lr_decay_steps=150, chunk=1024)
@@ -106,3 +109,32 @@ def test_unbounded_scene_and_misses():
     assert torch.isfinite(torch.tensor(model.train_step(data, 0)["loss"]))
     out = model.render(data.cameras[0])
     torch.testing.assert_close(out["rgb"], info.background.expand(12, 12, 3))
+
+
+def test_occupancy_shrinks_ranges_to_occupied_cells_and_skips_empty_rays():
+    data, info, _ = sphere_scene(n_cams=2, size=16)
+    model = NeRFModel(SMALL, info)
+    res = model.occupancy.resolution
+    centres = cell_points(torch.arange(res**3), res, torch.full((res**3, 3), 0.5))
+    # cells whose centre lies within 0.53 (the box is [-1, 1]^3, cell half-diagonal 0.027) cover the
+    # radius-0.5 ball and reach no further than 0.56
+    model.occupancy.occupied.copy_((2 * centres - 1).norm(dim=-1) < 0.53)
+    o, d, _ = camera_rays(data.cameras, 0)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    t_min, t_max = model._ray_range(o, d, jitter=False)
+    b = (o * d).sum(-1)
+    disc = b**2 - ((o * o).sum(-1) - 0.5**2)
+    enter, exit_ = -b - disc.clamp_min(0).sqrt(), -b + disc.clamp_min(0).sqrt()
+    inner = disc > 0.05  # clearly through the radius-0.5 ball: its whole chord lies in the range
+    assert inner.sum() > 20 and (t_min[inner] <= enter[inner]).all() and (t_max[inner] >= exit_[inner]).all()
+    far_off = b**2 - ((o * o).sum(-1) - 0.6**2) < 0  # misses the ball grown by 3 cells: no range
+    assert far_off.sum() > 20 and (t_max[far_off] == t_min[far_off]).all()
+    box_min, box_max = ray_bounds(info, o, d)
+    assert (t_min >= box_min).all() and (t_max <= box_max).all()
+    seen = []
+    original = model._render_net
+    model._render_net = lambda net, *a: seen.append(a[0].shape[0]) or original(net, *a)
+    out = model.render(data.cameras[0])
+    assert seen and sum(seen) == 2 * int((t_max > t_min).sum())  # coarse + fine, hit rays only
+    torch.testing.assert_close(out["rgb"].reshape(-1, 3)[far_off], info.background.expand(int(far_off.sum()), 3))
+    assert (out["acc"].reshape(-1)[far_off] == 0).all()

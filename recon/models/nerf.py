@@ -8,6 +8,11 @@ position only, colour from a `width` feature + the encoded direction through one
 layer. Two such networks: the coarse one is rendered at `n_coarse` stratified samples, the fine
 one at those plus `n_fine` samples drawn from the coarse weights by inverse-CDF sampling. The
 loss is the sum of both MSEs (seed, "The training objective").
+
+Empty-space skipping (off in the paper preset): the shared occupancy grid, refreshed from the
+fine network's density, shrinks every ray's range to the hull of its occupied cells before the
+coarse samples are laid out, so the same sample budget lands on the object; rays that cross no
+occupied cell are not sent through either network at all (they see the background).
 """
 
 from __future__ import annotations
@@ -21,8 +26,17 @@ from torch import Tensor, nn
 from recon.cameras import Cameras
 from recon.fields.encodings import positional_encoding, positional_encoding_dim
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
-from recon.models.raymarch import exp_decay_lr, psnr, ray_bounds, render_image, sample_rays, set_lr
+from recon.models.raymarch import (
+    exp_decay_lr,
+    psnr,
+    ray_bounds,
+    render_image,
+    sample_rays,
+    scatter_rays,
+    set_lr,
+)
 from recon.volrend import (
+    OccupancyGrid,
     contract,
     intervals_from_points,
     merge_points,
@@ -32,6 +46,8 @@ from recon.volrend import (
     stratified_intervals,
     volume_render,
 )
+from recon.volrend.occupancy import ray_spans
+from recon.volrend.samplers import uniform
 
 
 @dataclass(frozen=True)
@@ -50,6 +66,12 @@ class NeRFConfig:
     lr: float = 5e-4  # Adam learning rate at step 0
     lr_final: float = 5e-5  # learning rate after lr_decay_steps (exponential decay)
     lr_decay_steps: int = 20000  # steps of the learning-rate decay (paper: 250k x 1000 / 500)
+    occupancy_res: int = 64  # occupancy-grid resolution for empty-space skipping (0 = off, as the paper)
+    occupancy_every: int = 16  # steps between occupancy-grid updates
+    occupancy_warmup: int = 64  # steps during which every cell is updated and kept occupied
+    occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
+    occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities
+    march_steps: int = 256  # marching steps along the box diagonal that find each ray's occupied range
     chunk: int = 2048  # rays per chunk when rendering images
     default_steps: int = 3000  # steps when no stopping rule is given
     seed: int = 0  # seeds ray sampling and sample jitter
@@ -59,6 +81,7 @@ PRESETS = {
     "fast": {},
     "paper": {"depth": 8, "width": 256, "skip_layer": 5, "n_coarse": 64, "n_fine": 128,
               "rays_per_batch": 4096, "density_activation": "relu", "lr_decay_steps": 500000,
+              "occupancy_res": 0,
               "default_steps": 200000, "chunk": 4096},
 }
 
@@ -103,8 +126,11 @@ class NeRFModel(Model):
         self.register_buffer("aabb", scene.aabb.clone().float())
         self.register_buffer("background", scene.background.clone().float())
         self.coarse, self.fine = NeRFMLP(cfg), NeRFMLP(cfg)
+        self.occupancy = OccupancyGrid(cfg.occupancy_res) if cfg.occupancy_res > 0 else None
+        self.step_size = (self.aabb[1] - self.aabb[0]).norm().item() / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.optimizer = torch.optim.Adam(self.parameters(), lr=cfg.lr)
+        self.optimizer = torch.optim.Adam(self.parameters(), lr=cfg.lr,
+                                          fused=self.aabb.device.type == "cpu" or None)
 
     def encode_points(self, points: Tensor) -> Tensor:
         """gamma of world points (N, 3): the box maps to [-1, 1]^3; unbounded scenes contract
@@ -117,27 +143,43 @@ class NeRFModel(Model):
     def density(self, points: Tensor) -> Tensor:
         return self.fine.geometry(self.encode_points(points))[0]
 
-    def _intervals(self, o: Tensor, d: Tensor, jitter: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Coarse intervals (R, Nc) x2 and the ray range (t_min, t_max) (R,) x2."""
+    def sigma_unit(self, x_unit: Tensor) -> Tensor:
+        """Fine density (N,) at unit-cube points (the occupancy grid's domain). The encoding input
+        of `encode_points` is 2 x_unit - 1 for bounded and unbounded scenes alike."""
+        return self.fine.geometry(positional_encoding(2.0 * x_unit - 1.0, self.cfg.pos_bands))[0]
+
+    def _ray_range(self, o: Tensor, d: Tensor, jitter: bool) -> tuple[Tensor, Tensor]:
+        """(t_min, t_max) (R,): the scene range, shrunk to the hull of the occupied cells when the
+        occupancy grid is on (t_min = t_max: the ray crosses no occupied cell)."""
         t_min, t_max = ray_bounds(self.scene, o, d)
+        if self.occupancy is None:
+            return t_min, t_max
+        u = uniform((o.shape[0],), t_min, self.generator) if jitter else None
+        cone = 1 / 256 if self.scene.unbounded else 0.0
+        ri, t0, t1 = self.occupancy.march(o, d, t_min, t_max, self.aabb, self.scene.unbounded,
+                                          self.step_size, cone, u)
+        lo, hi = ray_spans(ri.to(o.device), t0.to(o), t1.to(o), o.shape[0], pad=self.step_size)
+        lo, hi = torch.maximum(lo, t_min), torch.minimum(hi, t_max)
+        return lo, torch.maximum(hi, lo)
+
+    def _intervals(self, t_min: Tensor, t_max: Tensor, jitter: bool) -> tuple[Tensor, Tensor]:
+        """Coarse intervals (R, Nc) x2 tiling [t_min, t_max]."""
         n, g = self.cfg.n_coarse, self.generator
         if self.scene.unbounded:  # linear in disparity: as many samples beyond 2 x near as before
             inv = torch.reciprocal
-            t0, t1 = spaced_intervals(t_min, t_max, n, jitter, inv, inv, g)
-        else:
-            t0, t1 = stratified_intervals(t_min, t_max, n, jitter, g)
-        return t0, t1, t_min, t_max
+            return spaced_intervals(t_min, t_max, n, jitter, inv, inv, g)
+        return stratified_intervals(t_min, t_max, n, jitter, g)
 
     def _render_net(self, net: NeRFMLP, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor):
         R, S = t0.shape
         x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]  # (R, S, 3)
         d_enc = positional_encoding(d, self.cfg.dir_bands)[:, None].expand(R, S, -1)
-        sigma, rgb = net(self.encode_points(x.reshape(-1, 3)), d_enc.reshape(R * S, -1))
+        sigma, rgb = net(self.encode_points(x.reshape(-1, 3)), d_enc.reshape(R * S, d_enc.shape[-1]))
         return volume_render(sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=self.background)
 
-    def _render_rays(self, o: Tensor, d: Tensor, jitter: bool):
+    def _render_hits(self, o: Tensor, d: Tensor, t_min: Tensor, t_max: Tensor, jitter: bool):
         """Coarse render, inverse-CDF fine samples, fine render -> (coarse, fine) VolumeRender."""
-        t0, t1, t_min, t_max = self._intervals(o, d, jitter)
+        t0, t1 = self._intervals(t_min, t_max, jitter)
         coarse = self._render_net(self.coarse, o, d, t0, t1)
         edges = torch.cat([t0, t1[:, -1:]], -1)
         t_fine = sample_pdf(edges, coarse.weights, self.cfg.n_fine, jitter, self.generator)
@@ -145,25 +187,52 @@ class NeRFModel(Model):
         f0, f1 = intervals_from_points(t_all, t_min, t_max)
         return coarse, self._render_net(self.fine, o, d, f0, f1)
 
+    def _render_rays(self, o: Tensor, d: Tensor, jitter: bool) -> tuple[dict, dict]:
+        """Both passes on the rays with a non-empty range only -> (coarse, fine) dicts of rgb (R, 3),
+        depth (R,) (expected t), acc (R,) and hit (R,) bool; rays that miss get the background, 0, 0."""
+        t_min, t_max = self._ray_range(o, d, jitter)
+        is_hit = t_max > t_min
+        hit = is_hit.nonzero()[:, 0]
+        if hit.numel() == o.shape[0]:
+            passes = self._render_hits(o, d, t_min, t_max, jitter)
+        else:
+            passes = self._render_hits(o[hit], d[hit], t_min[hit], t_max[hit], jitter)
+        R = o.shape[0]
+        return tuple({"rgb": scatter_rays(p.rgb, hit, R, self.background),
+                      "depth": scatter_rays(p.depth, hit, R, None),
+                      "acc": scatter_rays(p.acc, hit, R, None), "hit": is_hit} for p in passes)
+
+    def _update_occupancy(self, step: int) -> None:
+        cfg = self.cfg
+        if self.occupancy is not None and step % cfg.occupancy_every == 0:
+            self.occupancy.update(self.sigma_unit, self.step_size, step < cfg.occupancy_warmup,
+                                  cfg.occupancy_decay, cfg.occupancy_threshold, generator=self.generator)
+
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         cfg = self.cfg
+        self._update_occupancy(step)
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         batch = sample_rays(data.rays(), cfg.rays_per_batch, self.generator)
         coarse, fine = self._render_rays(batch["origins"], batch["directions"], jitter=True)
-        mse_c = torch.mean((coarse.rgb - batch["rgb"]) ** 2)
-        mse_f = torch.mean((fine.rgb - batch["rgb"]) ** 2)
+        mse_c = torch.mean((coarse["rgb"] - batch["rgb"]) ** 2)
+        mse_f = torch.mean((fine["rgb"] - batch["rgb"]) ** 2)
         loss = mse_c + mse_f
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        return {"loss": loss.item(), "psnr": psnr(mse_f.item()), "psnr_coarse": psnr(mse_c.item()),
-                "samples_per_ray": float(cfg.n_coarse * 2 + cfg.n_fine)}
+        if loss.requires_grad:  # no ray crossed an occupied cell: nothing to learn
+            loss.backward()
+            self.optimizer.step()
+        hit_fraction = fine["hit"].float().mean().item()
+        out = {"loss": loss.item(), "psnr": psnr(mse_f.item()), "psnr_coarse": psnr(mse_c.item()),
+               "samples_per_ray": (cfg.n_coarse * 2 + cfg.n_fine) * hit_fraction}
+        if self.occupancy is not None:
+            out["occupied"] = self.occupancy.occupancy_fraction()
+        return out
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         def rays_fn(o: Tensor, d: Tensor):
             _, fine = self._render_rays(o, d, jitter=False)
-            return fine.rgb, fine.depth, fine.acc
+            return fine["rgb"], fine["depth"], fine["acc"]
 
         return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
 

