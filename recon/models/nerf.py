@@ -68,7 +68,7 @@ class NeRFConfig:
     lr_decay_steps: int = 20000  # steps of the learning-rate decay (paper: 250k x 1000 / 500)
     occupancy_res: int = 64  # occupancy-grid resolution for empty-space skipping (0 = off, as the paper)
     occupancy_every: int = 16  # steps between occupancy-grid updates
-    occupancy_warmup: int = 64  # steps during which every cell is updated and kept occupied
+    occupancy_warmup: int = 256  # steps with every cell kept occupied (NeRF learns its shape slower than ngp)
     occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
     occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities
     march_steps: int = 256  # marching steps along the box diagonal that find each ray's occupied range
