@@ -139,3 +139,12 @@ def test_occupancy_shrinks_ranges_to_occupied_cells_and_skips_empty_rays():
     assert seen and sum(seen) == 2 * int((t_max > t_min).sum())  # coarse + fine, hit rays only
     torch.testing.assert_close(out["rgb"].reshape(-1, 3)[far_off], info.background.expand(int(far_off.sum()), 3))
     assert (out["acc"].reshape(-1)[far_off] == 0).all()
+
+
+def test_a_model_saved_without_occupancy_grid_loads_and_renders_the_same():
+    data, info, _ = sphere_scene(n_cams=2, size=8)
+    old = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "occupancy_res": 0}), info)
+    new = NeRFModel(SMALL, info)
+    new.load_state_dict(old.state_dict())
+    assert new.occupancy is None
+    torch.testing.assert_close(new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"])

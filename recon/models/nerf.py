@@ -236,6 +236,13 @@ class NeRFModel(Model):
 
         return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
 
+    def load_state_dict(self, state: dict, strict: bool = True):
+        """A run saved before nerf had an occupancy grid (no `occupancy.*` entries) was trained and
+        must render without one."""
+        if self.occupancy is not None and "occupancy.occupied" not in state:
+            self.occupancy = None
+        return super().load_state_dict(state, strict)
+
     def training_state(self) -> dict:
         return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state()}
 
