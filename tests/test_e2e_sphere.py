@@ -64,6 +64,18 @@ def test_existing_run_is_refused_and_resume_continues(trained):
     assert out["steps"] == 160
 
 
+def test_forced_rerun_that_fails_keeps_the_old_run(trained):
+    before = (trained / "runs" / "plenoxel" / "model.pt").read_bytes()
+    record = json.loads((trained / "workspace.json").read_text())["stages"]["train/plenoxel"]
+    proc = recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--force", "--set",
+                     "resolutions=24,48", "--set", "no_such_option=1", check=False)
+    assert proc.returncode != 0 and "no_such_option" in proc.stderr
+    assert (trained / "runs" / "plenoxel" / "model.pt").read_bytes() == before
+    assert json.loads((trained / "workspace.json").read_text())["stages"]["train/plenoxel"] == record
+    assert sorted(p.name for p in (trained / "runs").iterdir()) == sorted(
+        p.name for p in (trained / "runs").iterdir() if not p.name.startswith("."))
+
+
 def test_3dgs_train_render_and_splat_export(trained):
     from recon.gaussians.ply import read_splat_ply
 

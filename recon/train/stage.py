@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -128,16 +129,15 @@ def _tuples(cls, d: dict) -> dict:
     return out
 
 
-def prepare_run(ws: Workspace, run: str, resume: bool, force: bool) -> None:
-    rd = ws.run_dir(run)
-    if rd.exists() and not resume:
-        if not force:
-            raise WorkspaceError(f"run '{run}' already exists: pass --resume to continue it, "
-                                 "--force to overwrite it, or --run NAME for a new run")
-        shutil.rmtree(rd)
-        ws.forget_stage(f"train/{run}")
+def check_run(ws: Workspace, run: str, resume: bool, force: bool) -> bool:
+    """Refuse what cannot be done; True when an existing run is to be replaced (--force)."""
+    exists = ws.run_dir(run).exists()
+    if exists and not resume and not force:
+        raise WorkspaceError(f"run '{run}' already exists: pass --resume to continue it, "
+                             "--force to overwrite it, or --run NAME for a new run")
     if resume and not ws.run_json(run).exists():
         raise WorkspaceError(f"cannot resume: run '{run}' does not exist")
+    return exists and not resume
 
 
 def set_threads(n: int) -> None:
@@ -161,20 +161,25 @@ def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resum
         set_threads(cfg.threads)
     device = pick_device(cfg.device)
     with ws.writer_lock(f"run-{run}"):
-        prepare_run(ws, run, resume, force)
-        if resume:
-            saved = json.loads(ws.run_json(run).read_text())
-            method_cfg = spec.config_cls(**_tuples(spec.config_cls, saved["config"]))
-            cfg = TrainConfig(**{**saved["train"], **{k: v for k, v in asdict(cfg).items()
-                                                       if k in ("steps", "time_budget_s", "patience")}})
-        else:
-            method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
-        try:
-            return _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
-        except Exception:
-            if not resume:
-                discard_unresumable_run(ws, run)
-            raise
+        replace = check_run(ws, run, resume, force)
+        with ws.replacing_run(run) if replace else contextlib.nullcontext():
+            return _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progress)
+
+
+def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progress) -> dict:
+    if resume:
+        saved = json.loads(ws.run_json(run).read_text())
+        method_cfg = spec.config_cls(**_tuples(spec.config_cls, saved["config"]))
+        cfg = TrainConfig(**{**saved["train"], **{k: v for k, v in asdict(cfg).items()
+                                                   if k in ("steps", "time_budget_s", "patience")}})
+    else:
+        method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
+    try:
+        return _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
+    except Exception:
+        if not resume:
+            discard_unresumable_run(ws, run)
+        raise
 
 
 def discard_unresumable_run(ws: Workspace, run: str) -> None:

@@ -17,6 +17,7 @@ import fcntl
 import json
 import os
 import platform
+import shutil
 import sys
 import time
 from dataclasses import asdict, is_dataclass
@@ -175,7 +176,8 @@ class Workspace:
     def runs(self) -> list[str]:
         if not self.runs_dir.exists():
             return []
-        return sorted(p.name for p in self.runs_dir.iterdir() if (p / "run.json").exists())
+        return sorted(p.name for p in self.runs_dir.iterdir()
+                      if (p / "run.json").exists() and not p.name.startswith("."))
 
     def rel(self, path: Path) -> str:
         """A path as recorded in workspace.json: relative to the root when inside it."""
@@ -253,12 +255,40 @@ class Workspace:
             atomic_write_json(self.json_path, doc)
         return record
 
-    def forget_stage(self, prefix: str) -> None:
+    def forget_stage(self, prefix: str) -> dict:
+        """Drop the records of stage `prefix` and its sub-stages; returns what was dropped."""
         with self._json_lock():
             doc = self.load()
-            doc["stages"] = {k: v for k, v in doc["stages"].items()
-                             if k != prefix and not k.startswith(prefix + "/")}
+            dropped = {k: v for k, v in doc["stages"].items() if k == prefix or k.startswith(prefix + "/")}
+            doc["stages"] = {k: v for k, v in doc["stages"].items() if k not in dropped}
             atomic_write_json(self.json_path, doc)
+        return dropped
+
+    def _restore_stages(self, records: dict) -> None:
+        with self._json_lock():
+            doc = self.load()
+            doc["stages"].update(records)
+            atomic_write_json(self.json_path, doc)
+
+    @contextlib.contextmanager
+    def replacing_run(self, run: str):
+        """`--force` over an existing run: the old run is moved aside (records forgotten) while
+        the block builds the new one, deleted when the block ends or is interrupted (Ctrl-C
+        leaves a resumable new run), and put back, records included, when the block fails: a
+        failed rerun loses nothing."""
+        rd, aside = self.run_dir(run), self.runs_dir / f".replaced-{run}"
+        shutil.rmtree(aside, ignore_errors=True)
+        rd.rename(aside)
+        records = self.forget_stage(f"train/{run}")
+        try:
+            yield
+        except Exception:
+            shutil.rmtree(rd, ignore_errors=True)
+            aside.rename(rd)
+            self._restore_stages(records)
+            raise
+        finally:
+            shutil.rmtree(aside, ignore_errors=True)
 
     def stage(self, key: str) -> dict | None:
         return self.load()["stages"].get(key)
