@@ -15,7 +15,7 @@ from recon.volrend.occupancy import cell_points
 
 SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_fine=16,
                    rays_per_batch=256, lr=5e-3, lr_final=5e-4, lr_decay_steps=150, chunk=1024,
-                   occupancy_warmup=64)  # the sphere test then trains 86 steps with empty space skipped
+                   occupancy_res=64, occupancy_warmup=64)  # the sphere test trains 86 steps with skipping
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")

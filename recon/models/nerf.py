@@ -9,8 +9,8 @@ layer. Two such networks: the coarse one is rendered at `n_coarse` stratified sa
 one at those plus `n_fine` samples drawn from the coarse weights by inverse-CDF sampling. The
 loss is the sum of both MSEs (seed, "The training objective").
 
-Empty-space skipping (off in the paper preset): the shared occupancy grid, refreshed from the
-fine network's density, shrinks every ray's range to the hull of its occupied cells before the
+Empty-space skipping (opt-in, `occupancy_res > 0`; not yet shown to help on lego): the shared
+occupancy grid, refreshed from the fine network's density, shrinks every ray's range to the hull of its occupied cells before the
 coarse samples are laid out, so the same sample budget lands on the object; rays that cross no
 occupied cell are not sent through either network at all (they see the background).
 """
@@ -66,7 +66,7 @@ class NeRFConfig:
     lr: float = 5e-4  # Adam learning rate at step 0
     lr_final: float = 5e-5  # learning rate after lr_decay_steps (exponential decay)
     lr_decay_steps: int = 20000  # steps of the learning-rate decay (paper: 250k x 1000 / 500)
-    occupancy_res: int = 64  # occupancy-grid resolution for empty-space skipping (0 = off, as the paper)
+    occupancy_res: int = 0  # occupancy-grid resolution for empty-space skipping, e.g. 64 (0 = off, as the paper)
     occupancy_every: int = 16  # steps between occupancy-grid updates
     occupancy_warmup: int = 256  # steps with every cell kept occupied (NeRF learns its shape slower than ngp)
     occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
@@ -81,7 +81,6 @@ PRESETS = {
     "fast": {},
     "paper": {"depth": 8, "width": 256, "skip_layer": 5, "n_coarse": 64, "n_fine": 128,
               "rays_per_batch": 4096, "density_activation": "relu", "lr_decay_steps": 500000,
-              "occupancy_res": 0,
               "default_steps": 200000, "chunk": 4096},
 }
 
