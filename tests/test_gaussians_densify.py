@@ -74,6 +74,19 @@ def test_clone_split_prune_keep_optimizer_state_consistent():
     assert (offsets.abs() < 4 * parent_scale).all() and offsets.abs().sum() > 0
 
 
+def test_clone_opacity_correction_keeps_the_composited_alpha():
+    params, optimizer, state = four_gaussians()
+    o = torch.sigmoid(params["opacity_logits"][0]).item()
+    strategy = DensifyStrategy(grad_threshold=0.3, clone_opacity_correction=True)
+    densify.densify_and_prune(strategy, params, optimizer, state, 10, 1.0)
+    # Survivors: 0, 3, clone of 0, children of 1 (see above); 0 and its clone share o'.
+    halves = torch.sigmoid(params["opacity_logits"][[0, 2]]).detach()
+    assert torch.equal(halves[0], halves[1])
+    assert 1 - (1 - halves[0].item()) ** 2 == pytest.approx(o, rel=1e-5)
+    assert torch.sigmoid(params["opacity_logits"][1]).item() == pytest.approx(0.5, rel=0.05)
+    assert_moments_match(params, optimizer)
+
+
 def test_max_gaussians_caps_growth_by_gradient():
     params, optimizer, state = four_gaussians()
     state["grad2d"] = torch.tensor([0.5, 1.0, 0.0, 0.0])

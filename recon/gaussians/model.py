@@ -67,6 +67,7 @@ class GaussiansConfig:
     prune_screen_fraction: float = 0.15  # prune if screen radius > this x image size (after a reset)
     prune_world_fraction: float = 0.1  # prune if max scale > this x extent (after a reset)
     max_gaussians: int = 3_000_000  # densification stops growing the count here
+    clone_opacity_correction: bool = False  # a clone and its original share the opacity (1 - sqrt(1 - o))
     seed: int = 0  # seeds random init, view order and split sampling
     default_steps: int = 30_000  # steps when `recon train` is given no stopping rule
 
@@ -77,6 +78,7 @@ PRESETS = {
         "init_points": 4000, "init_from_images": True, "sh_degree_interval": 500, "lr_decay_steps": 5000,
         "densify_start": 100, "densify_stop": 2000, "densify_interval": 100,
         "opacity_reset_interval": 1000, "max_gaussians": 200_000, "default_steps": 3000,
+        "clone_opacity_correction": True,
     },
 }
 
@@ -119,7 +121,8 @@ def densify_strategy(config: GaussiansConfig) -> densify.DensifyStrategy:
         prune_opacity=config.prune_opacity, prune_screen_fraction=config.prune_screen_fraction,
         prune_world_fraction=config.prune_world_fraction, start=config.densify_start,
         stop=config.densify_stop, interval=config.densify_interval,
-        reset_interval=config.opacity_reset_interval, max_gaussians=config.max_gaussians)
+        reset_interval=config.opacity_reset_interval, max_gaussians=config.max_gaussians,
+        clone_opacity_correction=config.clone_opacity_correction)
 
 
 class GaussianModel(Model):
