@@ -50,13 +50,22 @@ def recon(*args: str) -> dict:
     return json.loads(proc.stdout)
 
 
+def git_commit() -> str:
+    """HEAD's short hash, with "+dirty" when tracked files differ (a result names its code)."""
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "recon", "pipelines"], cwd=ROOT).returncode
+    return (head.stdout.strip() or "unknown") + ("+dirty" if dirty else "")
+
+
 def bench_method(ws: Path, method: str, budget: float) -> dict:
+    started = {"commit": git_commit(), "started": dt.datetime.now().isoformat(timespec="seconds"),
+               "load_average_before": os.getloadavg()[0]}
     train = recon("train", "-w", str(ws), "--method", method, "--time-budget", str(budget), "--threads", "2",
                   "--eval-every", str(max(budget / 10, 15)), "--eval-views", "4", "--force")
     ev = recon("eval", "-w", str(ws), "--run", method, "--every", "8")[method]
     sp = ev["speed"]
     return {
-        "method": method, "time_budget_s": budget, "steps": train["steps"],
+        **started, "method": method, "time_budget_s": budget, "steps": train["steps"],
         "steps_per_s": sp["steps_per_s"], "test_psnr": ev["mean"]["psnr"], "test_ssim": ev["mean"]["ssim"],
         "test_lpips": ev["mean"].get("lpips"), "time_to_psnr_s": sp["time_to_psnr_s"],
         "render_ms_per_frame_200": ev["render_ms_per_frame"],
@@ -88,6 +97,9 @@ def markdown(results: dict) -> str:
             f"{r['test_psnr']:.2f}", f"{r['test_ssim']:.4f}", "–" if lp is None else f"{lp:.4f}",
             str(r["time_to_psnr_s"].get("25")), f"{r['render_ms_per_frame_200']:.0f}", f"{r['peak_rss_mb']:.0f}",
             str(int(r["parameters"] or 0)), f"{(r['model_bytes'] or 0) / 1e6:.1f} |"]))
+    lines += ["", "Each method's run (a `--reuse` table mixes runs): "
+              + "; ".join(f"{r['method']} at {r.get('commit', '?')}, {r.get('started', '?')}, load "
+                          f"{r.get('load_average_before', '?')}" for r in results["lego-200"] if "error" not in r)]
     lines += ["", "Held-out PSNR during training (4 views, from log.jsonl) at 2 / 5 / 10 / 30 min:", ""]
     for r in results["lego-200"]:
         if "error" not in r:

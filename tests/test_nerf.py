@@ -10,7 +10,7 @@ from test_ngp import eval_psnr, mean_colour_psnr, sphere_scene
 from recon.cameras.rays import camera_rays
 from recon.models.base import METHODS, SceneInfo
 from recon.models.nerf import PRESETS, NeRFConfig, NeRFMLP, NeRFModel
-from recon.models.raymarch import ray_bounds
+from recon.models.raymarch import mlp_dtype, ray_bounds
 from recon.volrend.occupancy import cell_points
 
 SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_fine=16,
@@ -38,6 +38,45 @@ def test_density_depends_on_position_only():
     s1, c1 = net(x, torch.randn(5, 27))
     s2, c2 = net(x, torch.randn(5, 27))
     assert torch.equal(s1, s2) and not torch.equal(c1, c2) and (s1 >= 0).all()
+
+
+def test_colour_layer_split_is_the_concatenated_linear():
+    """The per-ray direction term of the colour layer equals the paper's per-sample [feature, gamma(d)]
+    input to one Linear (its brute-force twin)."""
+    torch.manual_seed(0)
+    net = NeRFMLP(SMALL)
+    R, S = 4, 6
+    x, d = torch.randn(R * S, net.pos_dim), torch.randn(R, 27)
+    sigma, rgb = net(x, d)
+    _, h = net.geometry(x)
+    cat = torch.cat([net.feature(h), d.repeat_interleave(S, 0)], -1)
+    torch.testing.assert_close(rgb, torch.sigmoid(net.color(cat)))
+    empty_sigma, empty_rgb = net(x[:0], d[:0])  # a chunk in which no ray hits
+    assert empty_sigma.shape == (0,) and empty_rgb.shape == (0, 3)
+
+
+def test_mlp_precision_choice():
+    cpu = torch.device("cpu")
+    assert mlp_dtype(cpu, "fp32") == torch.float32 and mlp_dtype(cpu, "bf16") == torch.bfloat16
+    assert mlp_dtype(cpu, "auto") in (torch.float32, torch.bfloat16)
+    with pytest.raises(ValueError, match="precision"):
+        mlp_dtype(cpu, "fp8")
+
+
+def test_bf16_mlp_renders_like_fp32_and_trains():
+    """bf16 matmuls (fp32 weights, optimizer and compositing) stay close to the fp32 model and
+    give finite fp32 gradients."""
+    data, info, _ = sphere_scene(n_cams=2, size=12)
+    torch.manual_seed(0)
+    exact = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "precision": "fp32", "occupancy_res": 0}), info)
+    half = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "precision": "bf16", "occupancy_res": 0}), info)
+    half.load_state_dict(exact.state_dict())
+    a, b = exact.render(data.cameras[0]), half.render(data.cameras[0])
+    assert b["rgb"].dtype == torch.float32 and (a["rgb"] - b["rgb"]).abs().max() < 0.03
+    stats = half.train_step(data, 0)
+    assert torch.isfinite(torch.tensor(stats["loss"]))
+    grads = [p.grad for p in half.parameters() if p.grad is not None]
+    assert grads and all(g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads)
 
 
 def test_learns_sphere_and_renders():

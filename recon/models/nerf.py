@@ -9,10 +9,16 @@ layer. Two such networks: the coarse one is rendered at `n_coarse` stratified sa
 one at those plus `n_fine` samples drawn from the coarse weights by inverse-CDF sampling. The
 loss is the sum of both MSEs (seed, "The training objective").
 
-Empty-space skipping (opt-in, `occupancy_res > 0`; not yet shown to help on lego): the shared
-occupancy grid, refreshed from the fine network's density, shrinks every ray's range to the hull of its occupied cells before the
-coarse samples are laid out, so the same sample budget lands on the object; rays that cross no
-occupied cell are not sent through either network at all (they see the background).
+Empty-space skipping (`occupancy_res > 0`, the CPU default; the paper preset turns it off): the
+shared occupancy grid, refreshed from the fine network's density, shrinks every ray's range to the
+hull of its occupied cells before the coarse samples are laid out, so the same sample budget lands
+on the object; rays that cross no occupied cell are not sent through either network at all (they
+see the background).
+
+Speed on a CPU (lego-200, 2 threads, `bench/results/volume_tuning.md`): the MLP matmuls run in
+bf16 under autocast where the hardware has native bf16 (`precision`), 3x the fp32 step rate; the
+colour layer applies gamma(d) once per ray instead of once per sample; and the learning rate
+starts 10x higher than the paper's, decaying over 8,000 steps (~30 min here).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from recon.fields.encodings import positional_encoding, positional_encoding_dim
 from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
 from recon.models.raymarch import (
     exp_decay_lr,
+    mlp_dtype,
     psnr,
     ray_bounds,
     render_image,
@@ -63,10 +70,11 @@ class NeRFConfig:
     n_fine: int = 64  # extra inverse-CDF samples per ray for the fine network (paper: 128)
     rays_per_batch: int = 1024  # rays per training step (paper: 4096)
     density_activation: str = "softplus"  # relu (paper) | softplus (smoother start, as mip-NeRF)
-    lr: float = 5e-4  # Adam learning rate at step 0
+    lr: float = 5e-3  # Adam learning rate at step 0 (paper: 5e-4; 10x learns faster on a CPU budget)
     lr_final: float = 5e-5  # learning rate after lr_decay_steps (exponential decay)
-    lr_decay_steps: int = 20000  # steps of the learning-rate decay (paper: 250k x 1000 / 500)
-    occupancy_res: int = 0  # occupancy-grid resolution for empty-space skipping, e.g. 64 (0 = off, as the paper)
+    lr_decay_steps: int = 8000  # steps of the learning-rate decay: ~30 min here (paper: 250k x 1000 / 500)
+    precision: str = "auto"  # MLP matmuls: auto (bf16 where native: AMX / AVX512-BF16 / CUDA) | bf16 | fp32
+    occupancy_res: int = 64  # occupancy-grid resolution for empty-space skipping (0 = off, as the paper)
     occupancy_every: int = 16  # steps between occupancy-grid updates
     occupancy_warmup: int = 256  # steps with every cell kept occupied (NeRF learns its shape slower than ngp)
     occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
@@ -80,7 +88,8 @@ class NeRFConfig:
 PRESETS = {
     "fast": {},
     "paper": {"depth": 8, "width": 256, "skip_layer": 5, "n_coarse": 64, "n_fine": 128,
-              "rays_per_batch": 4096, "density_activation": "relu", "lr_decay_steps": 500000,
+              "rays_per_batch": 4096, "density_activation": "relu", "lr": 5e-4, "lr_decay_steps": 500000,
+              "occupancy_res": 0,
               "default_steps": 200000, "chunk": 4096},
 }
 
@@ -100,20 +109,31 @@ class NeRFMLP(nn.Module):
         self.color = nn.Sequential(nn.Linear(W + dir_dim, W // 2), nn.ReLU(), nn.Linear(W // 2, 3))
 
     def geometry(self, x_enc: Tensor) -> tuple[Tensor, Tensor]:
-        """sigma (N,) >= 0 and the last hidden layer (N, W) from the encoded position."""
+        """sigma (N,) >= 0 (fp32) and the last hidden layer (N, W) from the encoded position."""
         h = x_enc
         for i, layer in enumerate(self.layers):
             if i == self.skip:  # layer `skip` sees [h, gamma(x)] (NeRF's skip connection)
                 h = torch.cat([h, x_enc], -1)
             h = F.relu(layer(h))
-        raw = self.sigma(h)[:, 0]
+        raw = self.sigma(h)[:, 0].float()
         sigma = F.relu(raw) if self.activation == "relu" else F.softplus(raw - 1.0)
         return sigma, h
 
     def forward(self, x_enc: Tensor, d_enc: Tensor) -> tuple[Tensor, Tensor]:
+        """x_enc (R*S, P): S samples of each of R rays, ray-major; d_enc (R, D): one encoded
+        direction per ray -> sigma (R*S,), rgb (R*S, 3), both fp32.
+
+        The colour layer's input is [feature, gamma(d)]; its matmul is split into the feature
+        part (per sample) and the direction part (per ray, broadcast over the S samples), which
+        is the same linear map without materialising S copies of gamma(d)."""
         sigma, h = self.geometry(x_enc)
-        rgb = torch.sigmoid(self.color(torch.cat([self.feature(h), d_enc], -1)))
-        return sigma, rgb
+        R = d_enc.shape[0]
+        S = x_enc.shape[0] // R if R else 0
+        first, W = self.color[0], self.feature.out_features
+        per_sample = F.linear(self.feature(h), first.weight[:, :W], first.bias)
+        hidden = per_sample.view(R, S, first.out_features) + F.linear(d_enc, first.weight[:, W:])[:, None]
+        rgb = torch.sigmoid(self.color[2](F.relu(hidden)).float())
+        return sigma, rgb.view(-1, 3)
 
 
 class NeRFModel(Model):
@@ -126,6 +146,7 @@ class NeRFModel(Model):
         self.register_buffer("background", scene.background.clone().float())
         self.coarse, self.fine = NeRFMLP(cfg), NeRFMLP(cfg)
         self.occupancy = OccupancyGrid(cfg.occupancy_res) if cfg.occupancy_res > 0 else None
+        self.dtype = mlp_dtype(self.aabb.device, cfg.precision)
         self.step_size = (self.aabb[1] - self.aabb[0]).norm().item() / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.optimizer = torch.optim.Adam(self.parameters(), lr=cfg.lr,
@@ -139,13 +160,21 @@ class NeRFModel(Model):
             y = 0.5 * contract(y)
         return positional_encoding(y, self.cfg.pos_bands)
 
+    def _autocast(self):
+        """Mixed precision for the MLPs (see `mlp_dtype`); a no-op in fp32."""
+        return torch.autocast(self.aabb.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32)
+
+    def _sigma(self, net: NeRFMLP, x_enc: Tensor) -> Tensor:
+        with self._autocast():
+            return net.geometry(x_enc.to(self.dtype))[0]
+
     def density(self, points: Tensor) -> Tensor:
-        return self.fine.geometry(self.encode_points(points))[0]
+        return self._sigma(self.fine, self.encode_points(points))
 
     def sigma_unit(self, x_unit: Tensor) -> Tensor:
         """Fine density (N,) at unit-cube points (the occupancy grid's domain). The encoding input
         of `encode_points` is 2 x_unit - 1 for bounded and unbounded scenes alike."""
-        return self.fine.geometry(positional_encoding(2.0 * x_unit - 1.0, self.cfg.pos_bands))[0]
+        return self._sigma(self.fine, positional_encoding(2.0 * x_unit - 1.0, self.cfg.pos_bands))
 
     def _ray_range(self, o: Tensor, d: Tensor, jitter: bool) -> tuple[Tensor, Tensor]:
         """(t_min, t_max) (R,): the scene range, shrunk to the hull of the occupied cells when the
@@ -172,8 +201,10 @@ class NeRFModel(Model):
     def _render_net(self, net: NeRFMLP, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor):
         R, S = t0.shape
         x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]  # (R, S, 3)
-        d_enc = positional_encoding(d, self.cfg.dir_bands)[:, None].expand(R, S, -1)
-        sigma, rgb = net(self.encode_points(x.reshape(-1, 3)), d_enc.reshape(R * S, d_enc.shape[-1]))
+        x_enc = self.encode_points(x.reshape(-1, 3)).to(self.dtype)  # cast once: the skip reuses it
+        d_enc = positional_encoding(d, self.cfg.dir_bands).to(self.dtype)
+        with self._autocast():
+            sigma, rgb = net(x_enc, d_enc)
         return volume_render(sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=self.background)
 
     def _render_hits(self, o: Tensor, d: Tensor, t_min: Tensor, t_max: Tensor, jitter: bool):
