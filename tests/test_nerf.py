@@ -47,7 +47,7 @@ def test_colour_layer_split_is_the_concatenated_linear():
     net = NeRFMLP(SMALL)
     R, S = 4, 6
     x, d = torch.randn(R * S, net.pos_dim), torch.randn(R, 27)
-    sigma, rgb = net(x, d)
+    _, rgb = net(x, d)
     _, h = net.geometry(x)
     cat = torch.cat([net.feature(h), d.repeat_interleave(S, 0)], -1)
     torch.testing.assert_close(rgb, torch.sigmoid(net.color(cat)))
