@@ -8,9 +8,11 @@ import torch
 from test_ngp import eval_psnr, mean_colour_psnr, sphere_scene
 
 from recon.cameras.rays import camera_rays
+from recon.fields.encodings import positional_encoding
 from recon.models.base import METHODS, SceneInfo
-from recon.models.nerf import PRESETS, NeRFConfig, NeRFMLP, NeRFModel
+from recon.models.nerf import PRESETS, RAY_BUCKET, NeRFConfig, NeRFMLP, NeRFModel
 from recon.models.raymarch import mlp_dtype, ray_bounds
+from recon.volrend import volume_render
 from recon.volrend.occupancy import cell_points
 
 SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_fine=16,
@@ -77,6 +79,26 @@ def test_bf16_mlp_renders_like_fp32_and_trains():
     assert torch.isfinite(torch.tensor(stats["loss"]))
     grads = [p.grad for p in half.parameters() if p.grad is not None]
     assert grads and all(g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads)
+
+
+def test_mlps_see_ray_counts_in_buckets_and_padding_changes_nothing():
+    """Any number of hit rays reaches the MLPs rounded up to RAY_BUCKET (few matmul shapes for
+    oneDNN to compile), and the padded rows change neither the render nor the gradients."""
+    data, info, _ = sphere_scene(n_cams=1, size=8)
+    model = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "precision": "fp32"}), info)
+    seen, forward = [], model.fine.forward
+    model.fine.forward = lambda x, d: seen.append((x.shape[0], d.shape[0])) or forward(x, d)
+    o, d, _ = camera_rays(data.cameras, 0)
+    o, d = o.reshape(-1, 3)[:37], d.reshape(-1, 3)[:37]
+    t_min = ray_bounds(info, o, d)[0]
+    edges = torch.linspace(0, 1, 9).expand(37, 9) + t_min[:, None]
+    t0, t1 = edges[:, :-1], edges[:, 1:]
+    out = model._render_net(model.fine, o, d, t0, t1)
+    assert seen == [(RAY_BUCKET * 8, RAY_BUCKET)]
+    x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]
+    sigma, rgb = forward(model.encode_points(x.reshape(-1, 3)), positional_encoding(d, SMALL.dir_bands))
+    torch.testing.assert_close(out.rgb, volume_render(sigma.view(37, 8), rgb.view(37, 8, 3), t0, t1,
+                                                      background=model.background).rgb)
 
 
 def test_learns_sphere_and_renders():
