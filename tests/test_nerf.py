@@ -97,8 +97,12 @@ def test_mlps_see_ray_counts_in_buckets_and_padding_changes_nothing():
     assert seen == [(RAY_BUCKET * 8, RAY_BUCKET)]
     x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]
     sigma, rgb = forward(model.encode_points(x.reshape(-1, 3)), positional_encoding(d, SMALL.dir_bands))
-    torch.testing.assert_close(out.rgb, volume_render(sigma.view(37, 8), rgb.view(37, 8, 3), t0, t1,
-                                                      background=model.background).rgb)
+    twin = volume_render(sigma.view(37, 8), rgb.view(37, 8, 3), t0, t1, background=model.background).rgb
+    torch.testing.assert_close(out.rgb, twin)
+    params = list(model.fine.parameters())
+    for g_padded, g_twin in zip(torch.autograd.grad(out.rgb.sum(), params),
+                                torch.autograd.grad(twin.sum(), params), strict=True):
+        torch.testing.assert_close(g_padded, g_twin)
 
 
 def test_learns_sphere_and_renders():

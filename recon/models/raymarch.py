@@ -81,7 +81,8 @@ def mlp_dtype(device: torch.device, precision: str) -> torch.dtype:
     if device.type == "cuda":
         native = torch.cuda.is_bf16_supported()
     else:
-        native = torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
+        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # private torch API: absent = no
+        native = any(getattr(torch.cpu, name, lambda: False)() for name in probes)
     return torch.bfloat16 if native else torch.float32
 
 

@@ -65,4 +65,3 @@ def test_hash_encoding_with_a_half_precision_table_matches_float32(dtype):
     assert low.dtype == dtype and torch.isfinite(low).all()
     # features are O(1); the error is the table's rounding (the weights stay float32)
     assert float((low.float() - ref).abs().max()) < 4 * TOL[dtype]
-
