@@ -52,9 +52,64 @@ def _data():
 def test_stopping_rules():
     cfg = TrainConfig(method="x", steps=10)
     assert should_stop(cfg, LoopState(step=10)) == "steps"
-    assert should_stop(TrainConfig(method="x", time_budget_s=1.0), LoopState(wall_s=1.5)) == "time_budget"
+    budget = TrainConfig(method="x", time_budget_s=1.0)
+    assert should_stop(budget, LoopState(wall_s=0.5, elapsed_s=1.5)) == "time_budget"
+    assert should_stop(budget, LoopState(wall_s=0.5, elapsed_s=0.5)) is None
+    # the last evaluation's duration is kept in reserve for the final one
+    assert should_stop(budget, LoopState(wall_s=0.5, elapsed_s=0.7, eval_cost_s=0.4)) == "time_budget"
     assert should_stop(TrainConfig(method="x", patience=2), LoopState(evals_since_best=2)) == "converged"
     assert should_stop(cfg, LoopState(step=3)) is None
+
+
+class SlowEval(Toy):
+    """A Toy whose renders take `render_s` seconds: evaluations cost real time."""
+
+    def __init__(self, render_s, on_render=lambda: None):
+        super().__init__()
+        self.render_s, self.on_render = render_s, on_render
+
+    def render(self, camera):
+        import time
+
+        self.on_render()
+        time.sleep(self.render_s)
+        return super().render(camera)
+
+
+def _held(n):
+    cams = Cameras(torch.eye(3)[None].repeat(n, 1, 1), torch.eye(4)[None].repeat(n, 1, 1),
+                   torch.full((n,), 4), torch.full((n,), 4))
+    return cams, torch.full((n, 4, 4, 3), 0.25)
+
+
+def test_time_budget_counts_evaluations():
+    """Evaluations of 4 x 50 ms every 10 ms of training: a 1 s budget still ends within ~1 s of
+    wall time, most of it spent evaluating, and the final evaluation fits inside it."""
+    import time
+
+    cams, imgs = _held(4)
+    st, logs = LoopState(), []
+    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
+    model, data = SlowEval(0.05), _data()
+    t0 = time.perf_counter()
+    assert run_loop(model, data, cams, imgs, cfg, st, logs.append, lambda s: None) == "time_budget"
+    took = time.perf_counter() - t0
+    assert 0.8 <= st.elapsed_s <= 1.1 and took <= 1.2
+    assert st.wall_s < 0.5 * st.elapsed_s  # the steps are cheap: evaluation dominates
+    assert logs[-1]["test_psnr"] > 0 and logs[-1]["elapsed_s"] <= 1.1
+
+
+def test_interrupt_during_an_evaluation_stops_between_views():
+    """Ctrl-C / SIGTERM (the `interrupted` flag) stop an evaluation after the view in progress,
+    not after the whole evaluation."""
+    cams, imgs = _held(50)
+    renders = []
+    model = SlowEval(0.01, on_render=lambda: renders.append(1))
+    cfg = TrainConfig(method="toy", steps=100, eval_every_s=0.0)
+    with pytest.raises(KeyboardInterrupt):
+        run_loop(model, _data(), cams, imgs, cfg, LoopState(), lambda e: None, lambda s: None,
+                 interrupted=lambda: len(renders) >= 3)
+    assert len(renders) == 3 and model.training  # stopped inside the first evaluation
 
 
 def test_non_finite_loss_raises_at_once():

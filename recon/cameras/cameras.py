@@ -17,6 +17,22 @@ def intrinsics_matrix(fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor) -> Tensor:
     return K
 
 
+def scale_intrinsics(K: Tensor, sx: Tensor | float, sy: Tensor | float) -> Tensor:
+    """Intrinsics of an image resampled by (sx, sy) = (W'/W, H'/H) over the same field of view.
+
+    With pixel edges at integers (pixel (0, 0) covers [0, 1)^2, its centre at 0.5), the image
+    spans [0, W] x [0, H] and a resampling maps u' = sx u, v' = sy v, so K' = diag(sx, sy, 1) K:
+    focal lengths AND principal point scale (with centres at integers instead, c' would be
+    s (c + 0.5) - 0.5). K (..., 3, 3) -> (..., 3, 3).
+    Example: fx = 1385.3, cx = 538 for W = 1076 resampled to W' = 269 -> fx' = 346.3, cx' = 134.5,
+    still the centre of the new image.
+    """
+    out = K.clone()
+    out[..., 0, :] = out[..., 0, :] * sx
+    out[..., 1, :] = out[..., 1, :] * sy
+    return out
+
+
 def invert_rigid(a_from_b: Tensor) -> Tensor:
     """Inverse of rigid (..., 4, 4) transforms: b_from_a = [R^T, -R^T t]."""
     R, t = a_from_b[..., :3, :3], a_from_b[..., :3, 3:]
@@ -72,9 +88,17 @@ class Cameras:
         )
 
     def scaled(self, factor: float) -> Cameras:
-        """Cameras for images resized by `factor` (0.5 = half size); pixel edges scale exactly."""
-        K = self.K.clone()
-        K[:, :2, :] *= factor
-        w = torch.round(self.width.double() * factor).long()
-        h = torch.round(self.height.double() * factor).long()
-        return Cameras(K, self.cam_from_world.clone(), w, h)
+        """Cameras for images resized by `factor` (0.5 = half size), sizes rounded."""
+        w = torch.round(self.width.double() * factor).long().clamp_min(1)
+        h = torch.round(self.height.double() * factor).long().clamp_min(1)
+        return self.resized(w, h)
+
+    def resized(self, width: Tensor | int, height: Tensor | int) -> Cameras:
+        """The same views as images of `width` x `height` pixels (area-resampled over the same
+        field of view): K scaled per axis by exactly W'/W and H'/H (`scale_intrinsics`)."""
+        w = torch.as_tensor(width, device=self.width.device).expand_as(self.width).long()
+        h = torch.as_tensor(height, device=self.height.device).expand_as(self.height).long()
+        sx = (w.double() / self.width.double()).to(self.K)[:, None]
+        sy = (h.double() / self.height.double()).to(self.K)[:, None]
+        return Cameras(scale_intrinsics(self.K, sx, sy), self.cam_from_world.clone(), w.clone(),
+                       h.clone())

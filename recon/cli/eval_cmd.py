@@ -21,14 +21,22 @@ from recon.workspace import Workspace
               help="F-score threshold in original units (0: 1 % of the GT bounding-box diagonal).")
 @click.option("--gt-poses", default="", help="Reference poses (transforms.json or COLMAP model) for sfm accuracy.")
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS.")
+@click.option("--max-side", default=0, show_default=True, type=click.IntRange(0),
+              help="Evaluate at the pyramid level whose longer side fits N px (0: each run's training level).")
+@click.option("--downscale", default=0, show_default=True, type=click.IntRange(0),
+              help="Evaluate at the sfm images downscaled by K (0: each run's training level).")
 @click.option("--device", default="auto", type=click.Choice(["auto", "cpu", "cuda"]), show_default=True)
 @click.option("--force", is_flag=True, help="Evaluate stale runs too.")
 @json_option
-def command(workspace, runs, split, every, gt_mesh, gt_points, tau, gt_poses, no_lpips, device, force, as_json):
+def command(workspace, runs, split, every, gt_mesh, gt_points, tau, gt_poses, no_lpips, max_side,
+            downscale, device, force, as_json):
     """Evaluate runs -> WS/runs/RUN/eval/metrics.json, WS/report.md, WS/speed_vs_error.png."""
+    if max_side and downscale:
+        raise click.UsageError("give --max-side or --downscale, not both")
     ws = Workspace.open(workspace)
     cfg = EvalConfig(split=split, every=every, gt_mesh=gt_mesh, gt_points=gt_points, tau=tau,
-                     gt_poses=gt_poses, lpips=not no_lpips, device=device)
+                     gt_poses=gt_poses, lpips=not no_lpips, max_side=max_side, downscale=downscale,
+                     device=device)
     with Progress(enabled=not as_json) as progress:
         results = evaluate(ws, list(runs), cfg, force, progress)
     if as_json:
@@ -45,5 +53,7 @@ def command(workspace, runs, split, every, gt_mesh, gt_points, tau, gt_poses, no
         lp = f"{mean['lpips']:.4f}" if "lpips" in mean else "unavailable"
         geo = m["geometry"]
         g = (f", Chamfer {geo['chamfer']:.4g}, F-score {geo['fscore']:.3f}" if geo.get("status") == "ok" else "")
-        click.echo(f"eval: {run}: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}")
+        w, h = m["resolution"]
+        click.echo(f"eval: {run} at {w}x{h}: PSNR {mean['psnr']:.2f} dB (border {mean['psnr_border']:.2f}), "
+                   f"SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}")
     click.echo(f"report: {ws.report_md}  plot: {ws.speed_plot}")

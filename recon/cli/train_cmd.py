@@ -34,7 +34,11 @@ def _list_options(method: str) -> str:
               help="fast: sized for a CPU; paper: the paper's settings (GPU-sized).")
 @click.option("--steps", default=0, show_default=True, help="Stop after N steps (0: no limit).")
 @click.option("--time-budget", "time_budget", default=0.0, show_default=True,
-              help="Stop after this many seconds of training (0: no limit).")
+              help="Stop within this many seconds of wall time, evaluations included (0: no limit).")
+@click.option("--max-side", default=0, show_default=True, type=click.IntRange(0),
+              help="Train on images whose longer side is at most N px (0: chosen for the method and budget).")
+@click.option("--downscale", default=0, show_default=True, type=click.IntRange(0),
+              help="Train on the sfm images downscaled by K (0: chosen for the method and budget).")
 @click.option("--patience", default=0, show_default=True,
               help="Stop when held-out PSNR has not improved for this many evaluations (0: off).")
 @click.option("--eval-every", default=30.0, show_default=True,
@@ -53,9 +57,9 @@ def _list_options(method: str) -> str:
 @click.option("--resume", is_flag=True, help="Continue an interrupted run from its last checkpoint.")
 @click.option("--force", is_flag=True, help="Overwrite an existing run / train on a stale sfm stage.")
 @json_option
-def command(workspace, method, run, preset, steps, time_budget, patience, eval_every, eval_views,
-            checkpoint_every, seed, threads, device, overrides, init_ply, list_options, resume, force,
-            as_json):
+def command(workspace, method, run, preset, steps, time_budget, max_side, downscale, patience,
+            eval_every, eval_views, checkpoint_every, seed, threads, device, overrides, init_ply,
+            list_options, resume, force, as_json):
     """Train a scene representation -> WS/runs/RUN/ (run.json, log.jsonl, checkpoints/, model.pt).
 
     Without --steps, --time-budget or --patience the method's own step count applies.
@@ -66,6 +70,8 @@ def command(workspace, method, run, preset, steps, time_budget, patience, eval_e
     if list_options:
         click.echo(_list_options(method))
         return
+    if max_side and downscale:
+        raise click.UsageError("give --max-side or --downscale, not both")
     if init_ply is not None:
         if method != "3dgs":
             raise click.UsageError("--init-from-ply is for --method 3dgs")
@@ -77,8 +83,9 @@ def command(workspace, method, run, preset, steps, time_budget, patience, eval_e
         if not steps:
             raise click.UsageError("give --steps, --time-budget or --patience")
     cfg = TrainConfig(method=method, preset=preset, steps=steps, time_budget_s=time_budget,
-                      seed=seed, eval_every_s=eval_every, eval_views=eval_views, patience=patience,
-                      checkpoint_every_s=checkpoint_every, threads=threads, device=device)
+                      seed=seed, max_side=max_side, downscale=downscale, eval_every_s=eval_every,
+                      eval_views=eval_views, patience=patience, checkpoint_every_s=checkpoint_every,
+                      threads=threads, device=device)
     run = run or method
     with Progress(enabled=not as_json) as progress:
         summary = train(ws, run, cfg, list(overrides), resume, force, log_fn=progress.log,
@@ -87,6 +94,8 @@ def command(workspace, method, run, preset, steps, time_budget, patience, eval_e
         emit_json(summary)
     else:
         psnr = summary["best_test_psnr"]
-        click.echo(f"train: run '{run}' {summary['steps']} steps in {summary['train_wall_s']:.1f} s "
-                   f"(stopped: {summary['stop_reason']}); held-out PSNR "
+        res = summary["resolution"]["working"]
+        click.echo(f"train: run '{run}' {summary['steps']} steps at {res['width']}x{res['height']} "
+                   f"in {summary['elapsed_s']:.1f} s ({summary['train_wall_s']:.1f} s of steps; "
+                   f"stopped: {summary['stop_reason']}); held-out PSNR "
                    f"{'n/a' if psnr is None else f'{psnr:.2f} dB'} -> {ws.run_dir(run)}")

@@ -35,4 +35,11 @@ def speed_metrics(run_doc: dict, log: list[dict]) -> dict:
         "parameters": (run_doc.get("model_stats") or {}).get("parameters"),
         "model_bytes": run_doc.get("model_bytes"),
         "stop_reason": run_doc.get("stop_reason"),
+        "elapsed_s": run_doc.get("elapsed_s"),
+        "trained_at": _trained_size(run_doc),
     }
+
+
+def _trained_size(run_doc: dict) -> list[int] | None:
+    working = (run_doc.get("resolution") or {}).get("working")
+    return [working["width"], working["height"]] if working else None

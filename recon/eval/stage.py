@@ -16,8 +16,10 @@ import torch
 from recon.eval.report import write_report
 from recon.eval.speed import read_log, speed_metrics
 from recon.io.exr import read_depth_exr
-from recon.metrics.image import depth_errors, psnr, ssim
-from recon.train.stage import load_model, model_path, pick_device
+from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
+from recon.render.views import render_view
+from recon.train.stage import load_model, model_path, output_levels, pick_device
+from recon.workspace.scene import level_size
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 
 
@@ -30,6 +32,9 @@ class EvalConfig:
     tau: float = 0.0  # F-score threshold in original units (0 = 1 % of the GT bounding-box diagonal)
     gt_poses: str = ""  # reference poses (transforms.json or COLMAP model) for sfm pose accuracy
     lpips: bool = True  # compute LPIPS when its weights are available
+    max_side: int = 0  # evaluate at the pyramid level whose longer side fits N px (0 = the run's training level)
+    downscale: int = 0  # evaluate at the sfm images downscaled by K (0 = the run's training level)
+    border: float = 0.15  # PSNR is also reported on the outer band of this fraction of each side
     device: str = "auto"  # auto | cpu | cuda
 
 
@@ -37,20 +42,23 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
     from recon.metrics.lpips import lpips
     from recon.workspace.scene import load_images
 
-    model, scene, _ = load_model(ws, run, device)
+    model, scene, run_doc = load_model(ws, run, device)
     idx = scene.split(cfg.split)[:: cfg.every]
     if not idx:
         raise WorkspaceError(f"the scene has no '{cfg.split}' views to evaluate")
-    cams = scene.cameras(idx, device)
-    gts = load_images(ws, scene, idx).to(device)
+    k_out, k_render = output_levels(scene, run_doc, cfg.max_side, cfg.downscale)
+    cams = scene.cameras(idx, device, k_render)
+    gts = load_images(ws, scene, idx, k_out).to(device)
+    out_h, out_w = gts.shape[1:3]
+    band = border_mask(out_h, out_w, cfg.border).to(device)
     per_view, times = {}, []
     for i, fi in enumerate(idx):
         t0 = time.perf_counter()
-        with torch.no_grad():
-            out = model.render(cams[i])
+        out = render_view(model, cams[i], out_w, out_h)
         times.append(time.perf_counter() - t0)
         pred = out["rgb"].clamp(0, 1)
-        m = {"psnr": float(psnr(pred, gts[i])), "ssim": float(ssim(pred, gts[i]))}
+        m = {"psnr": float(psnr(pred, gts[i])), "ssim": float(ssim(pred, gts[i])),
+             "psnr_border": float(psnr_masked(pred, gts[i], band))}
         if lpips_model is not None:
             m["lpips"] = float(lpips(pred, gts[i], lpips_model))
         gt_depth_path = scene.frames[fi].get("depth_gt")
@@ -66,9 +74,12 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
         per_view[scene.frames[fi]["name"]] = m
     keys = sorted({k for v in per_view.values() for k in v})
     mean = {k: float(np.nanmean([v[k] for v in per_view.values() if k in v])) for k in keys}
+    sfm_size = scene.image_size("train")
     return {"per_view": per_view, "mean": mean, "views": len(idx),
             "render_ms_per_frame": round(1000 * float(np.median(times)), 2),
-            "resolution": [int(cams.width[0]), int(cams.height[0])]}
+            "resolution": [int(out_w), int(out_h)], "downscale": k_out,
+            "rendered_at": {"downscale": k_render, "size": list(level_size(*sfm_size, k_render))},
+            "border_fraction": cfg.border}
 
 
 def observed_fn(scene, tol: float):

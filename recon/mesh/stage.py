@@ -20,7 +20,7 @@ from recon.mesh.marching_cubes import (
     soft_field_threshold,
 )
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
-from recon.train.stage import load_model, model_path, pick_device
+from recon.train.stage import load_model, model_path, pick_device, trained_resolution
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 
 
@@ -44,13 +44,13 @@ def _has_density(model) -> bool:
         return False
 
 
-def rendered_surface_density(model, scene, cfg: MeshConfig, device) -> np.ndarray:
+def rendered_surface_density(model, scene, cfg: MeshConfig, device, downscale: int = 1) -> np.ndarray:
     """Density (N,) at the expected depth of the pixels with opacity > 0.5 in a few training views."""
     from recon.cameras import camera_rays
 
     idx = scene.split("train")
     idx = idx[:: max(1, len(idx) // max(1, cfg.threshold_views))][: cfg.threshold_views]
-    cams = scene.cameras(idx, device)
+    cams = scene.cameras(idx, device, downscale)
     values = []
     with torch.no_grad():
         for i in range(len(cams)):
@@ -67,6 +67,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     ws.require_fresh(key, force)
     device = pick_device(cfg.device)
     model, scene, run_doc = load_model(ws, run, device)
+    level = trained_resolution(run_doc, scene).downscale  # views are rendered at the training size
     aabb = scene.info.aabb.to(device)
     method = cfg.method
     if method == "auto":
@@ -77,14 +78,14 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
             raise WorkspaceError(f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf")
         side = float((aabb[1] - aabb[0]).max())
         threshold = cfg.threshold or soft_field_threshold(
-            choose_density_threshold(side / cfg.resolution), rendered_surface_density(model, scene, cfg, device))
+            choose_density_threshold(side / cfg.resolution), rendered_surface_density(model, scene, cfg, device, level))
         color_fn = getattr(model, "color", None)
         mesh = extract_density_mesh(model.density, aabb, cfg.resolution, threshold, color_fn=color_fn,
                                     device=device)
         detail = {"threshold": threshold}
     elif method == "tsdf":
         idx = scene.split("train")
-        cams = scene.cameras(idx, device)
+        cams = scene.cameras(idx, device, level)
         depths, rgbs = [], []
         for i in range(len(cams)):
             with torch.no_grad():

@@ -32,6 +32,29 @@ def psnr(pred, target, max_val: float = 1.0) -> Tensor:
     return 10.0 * torch.log10(max_val**2 / mse)  # mse = 0 -> +inf, as it should
 
 
+def psnr_masked(pred, target, mask, max_val: float = 1.0) -> Tensor:
+    """PSNR over the pixels where `mask` (..., H, W) is true: MSE = mean over those pixels and
+    the channels. With an all-true mask it equals `psnr`. Returns (...,) float64."""
+    pred, target = _as_tensor(pred).double(), _as_tensor(target).double()
+    if pred.shape != target.shape:
+        raise ValueError(f"psnr: shapes differ, {tuple(pred.shape)} vs {tuple(target.shape)}")
+    w = _as_tensor(mask).to(device=pred.device, dtype=torch.float64).expand(pred.shape[:-1])
+    mse = ((pred - target).square().mean(-1) * w).sum((-2, -1)) / w.sum((-2, -1))
+    return 10.0 * torch.log10(max_val**2 / mse)
+
+
+def border_mask(height: int, width: int, fraction: float) -> Tensor:
+    """(H, W) bool: pixels within `fraction` of the image's height of its top or bottom edge, or
+    within `fraction` of its width of its left or right edge - the outer band of a photo, where
+    an unbounded capture's far background shows. Example: 20 x 10 at 0.15 -> rows 0-2 and
+    17-19, columns 0-1 and 8-9 (the band is rounded to whole pixels, at least one)."""
+    by, bx = max(1, round(fraction * height)), max(1, round(fraction * width))
+    rows, cols = torch.arange(height), torch.arange(width)
+    row_in = (rows < by) | (rows >= height - by)
+    col_in = (cols < bx) | (cols >= width - bx)
+    return row_in[:, None] | col_in[None, :]
+
+
 def ssim(pred, target, max_val: float = 1.0) -> Tensor:
     """SSIM (Wang et al. 2004) with the 11x11 Gaussian window, sigma = 1.5, K = (0.01, 0.03).
 

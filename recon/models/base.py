@@ -113,11 +113,25 @@ class Model(nn.Module):
 
 
 @dataclass(frozen=True)
+class ResolutionPolicy:
+    """What a method needs from its training images, to choose its working resolution
+    (`recon.train.resolution`): how many training pixels it gets through per second, how many
+    passes over every pixel it needs to fit a resolution, and the longest side it trains on
+    when no time budget bounds the run."""
+
+    pixels_per_s: float = 350e3  # training pixels (rays) per second on a 2-thread CPU, measured
+    pixels_per_step: float = 0.0  # pixels per step for a --steps run (0: one whole image per step)
+    min_epochs: float = 30.0  # passes over every training pixel the method needs at one size
+    max_side: int = 1600  # longest image side trained on without a time budget (or on a GPU)
+
+
+@dataclass(frozen=True)
 class MethodSpec:
     name: str
     config_cls: type
     build: Callable  # (config, scene: SceneInfo) -> Model
     presets: dict  # preset name -> {field: value} overrides of the config defaults
+    resolution: ResolutionPolicy = ResolutionPolicy()  # how the working resolution is chosen
 
 
 METHODS: dict[str, MethodSpec] = {}

@@ -14,7 +14,9 @@ from recon.cameras.cameras import Cameras
 from recon.io.exr import write_depth_exr
 from recon.io.images import to_uint8, write_png
 from recon.render.paths import interpolate_path, orbit_path, spiral_path
-from recon.train.stage import load_model, model_path, pick_device
+from recon.render.views import render_view
+from recon.train.stage import load_model, model_path, output_levels, pick_device
+from recon.workspace.scene import level_size
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 
 
@@ -25,25 +27,30 @@ class RenderConfig:
     frames: int = 60  # frames of the camera path
     video: bool = False  # also write video.mp4
     fps: int = 30  # video frame rate
+    max_side: int = 0  # render at the pyramid level whose longer side fits N px (0 = the run's training level)
+    downscale: int = 0  # render at the sfm images' size divided by K (0 = the run's training level)
     device: str = "auto"  # auto | cpu | cuda
 
 
-def path_cameras(scene, kind: str, frames: int, device) -> tuple[Cameras, list[str]]:
+def path_cameras(scene, kind: str, frames: int, device, downscale: int = 1) -> tuple[Cameras, list[str]]:
+    """A camera path through the training views, with the first one's intrinsics at pyramid level
+    `downscale`. The paths take and give `world_from_cam` poses; cameras keep `cam_from_world`."""
     train = scene.split("train")
-    cams = scene.cameras(train).to(dtype=torch.float64)
+    cams = scene.cameras(train, downscale=downscale).to(dtype=torch.float64)
     target = scene.info.aabb.double().mean(0)
-    w2c = cams.world_from_cam
+    world_from_cam = cams.world_from_cam
     if kind == "orbit":
-        c2w = orbit_path(w2c[:, :3, 3], target, frames)
+        cam_from_world = orbit_path(world_from_cam[:, :3, 3], target, frames)
     elif kind == "spiral":
-        c2w = spiral_path(w2c, target, frames)
+        cam_from_world = spiral_path(world_from_cam, target, frames)
     elif kind == "interpolate":
         order = sorted(range(len(train)), key=lambda i: scene.frames[train[i]]["name"])
-        c2w = interpolate_path(w2c[order], frames)
+        cam_from_world = interpolate_path(world_from_cam[order], frames)
     else:
         raise WorkspaceError(f"unknown camera path {kind!r} (orbit, spiral, interpolate)")
     K = cams.K[:1].expand(frames, 3, 3).clone()
-    out = Cameras(K, c2w, cams.width[:1].expand(frames).clone(), cams.height[:1].expand(frames).clone())
+    out = Cameras(K, cam_from_world, cams.width[:1].expand(frames).clone(),
+                  cams.height[:1].expand(frames).clone())
     return out.to(device=device, dtype=torch.float32), [f"{i:04d}" for i in range(frames)]
 
 
@@ -51,23 +58,25 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
     key = f"train/{run}"
     ws.require_fresh(key, force)
     device = pick_device(cfg.device)
-    model, scene, _ = load_model(ws, run, device)
+    model, scene, run_doc = load_model(ws, run, device)
+    k_out, k_render = output_levels(scene, run_doc, cfg.max_side, cfg.downscale)
     if cfg.path:
-        cams, names = path_cameras(scene, cfg.path, cfg.frames, device)
+        cams, names = path_cameras(scene, cfg.path, cfg.frames, device, k_render)
+        sizes = [level_size(*scene.image_size("train"), k_out)] * len(cams)
         target = cfg.path
     else:
         idx = scene.split(cfg.split)
         if not idx:
             raise WorkspaceError(f"the scene has no '{cfg.split}' views")
-        cams, names = scene.cameras(idx, device), [scene.frames[i]["name"] for i in idx]
+        cams, names = scene.cameras(idx, device, k_render), [scene.frames[i]["name"] for i in idx]
+        sizes = [level_size(scene.frames[i]["width"], scene.frames[i]["height"], k_out) for i in idx]
         target = cfg.split
     out_dir = ws.renders_dir(run, target)
     started = time.time()
     times, frames_rgb = [], []
     for i in range(len(cams)):
         t0 = time.perf_counter()
-        with torch.no_grad():
-            out = model.render(cams[i])
+        out = render_view(model, cams[i], *sizes[i])
         if device.type == "cuda":
             torch.cuda.synchronize()
         times.append(time.perf_counter() - t0)
@@ -87,7 +96,9 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
     result = {"run": run, "target": target, "frames": len(cams), "out": str(out_dir),
               "ms_per_frame": round(1000 * float(np.mean(times)), 2),
               "ms_per_frame_median": round(1000 * float(np.median(times)), 2),
-              "resolution": [int(cams.width[0]), int(cams.height[0])], "device": str(device)}
+              "resolution": list(sizes[0]), "downscale": k_out,
+              "rendered_at": {"downscale": k_render, "size": [int(cams.width[0]), int(cams.height[0])]},
+              "device": str(device)}
     atomic_write_json(out_dir / "render.json", result)
     ws.record_stage(f"render/{run}/{target}", config=cfg.__dict__, inputs={"model": model_path(ws, run)},
                     outputs={"renders": out_dir}, upstream=[key], started=started, ended=time.time(),

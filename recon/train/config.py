@@ -13,10 +13,13 @@ class TrainConfig:
     method: str  # nerf | ngp | plenoxel | 3dgs
     preset: str = "fast"  # fast (CPU default) | paper (the paper's settings; GPU-sized)
     steps: int = 0  # stop after this many steps (0 = no step limit)
-    time_budget_s: float = 0.0  # stop after this much training wall time (0 = no limit)
+    time_budget_s: float = 0.0  # stop within this many seconds of wall time, evaluations included (0 = no limit)
     seed: int = 0  # seeds torch/numpy; same seed + threads + device = same run
+    max_side: int = 0  # train on images whose longer side is at most N px (0 = chosen for the method and budget)
+    downscale: int = 0  # train on the sfm images downscaled by K (0 = chosen for the method and budget)
     eval_every_s: float = 30.0  # held-out PSNR every this many seconds of training time
     eval_views: int = 4  # held-out views used for the periodic PSNR (evenly spaced test views)
+    eval_max_side: int = 256  # the periodic PSNR renders at most this longer side (cheap, and inside the budget)
     patience: int = 0  # stop when held-out PSNR has not improved for this many evals (0 = off)
     min_improvement_db: float = 0.05  # what counts as an improvement for `patience`
     checkpoint_every_s: float = 60.0  # checkpoint interval in training seconds (and at the end)

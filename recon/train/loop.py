@@ -1,7 +1,9 @@
 """The training loop: steps, held-out PSNR on a wall-clock schedule, checkpoints, stopping.
 
-Wall time in the log counts training only: evaluation and checkpointing are excluded, so
-the speed-vs-error curve measures the method, not our bookkeeping.
+Two clocks: `wall_s` counts training steps only (the speed-vs-error curve measures the method,
+not our bookkeeping), `elapsed_s` everything the run spends (setup, evaluations, checkpoints).
+The time budget bounds `elapsed_s`, keeping the final evaluation's time in reserve, so
+`recon train --time-budget T` returns after about T seconds.
 """
 
 from __future__ import annotations
@@ -26,26 +28,37 @@ class LoopState:
     evals_since_best: int = 0
     last_eval_wall: float = 0.0  # the first evaluation comes after eval_every_s of training
     last_ckpt_wall: float = 0.0
+    elapsed_s: float = 0.0  # wall time of the run so far, evaluations and checkpoints included
+    eval_cost_s: float = 0.0  # how long the last held-out evaluation took
 
 
 @torch.no_grad()
-def heldout_psnr(model: Model, cameras: Cameras, images: torch.Tensor) -> float:
-    """Mean PSNR (dB) of the model's renders of held-out views against the photos."""
+def heldout_psnr(model: Model, cameras: Cameras, images: torch.Tensor,
+                 interrupted: Callable[[], bool] = lambda: False) -> float:
+    """Mean PSNR (dB) of the model's renders of held-out views against the photos. Raises
+    KeyboardInterrupt between two views once `interrupted()` (Ctrl-C / SIGTERM never waits for
+    a whole evaluation)."""
     was_training = model.training
     model.eval()
     psnrs = []
-    for i in range(len(cameras)):
-        rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
-        mse = torch.mean((rgb - images[i].to(rgb.device)) ** 2).item()
-        psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
-    model.train(was_training)
+    try:
+        for i in range(len(cameras)):
+            if interrupted():
+                raise KeyboardInterrupt
+            rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
+            mse = torch.mean((rgb - images[i].to(rgb.device)) ** 2).item()
+            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+    finally:
+        model.train(was_training)
     return float(sum(psnrs) / len(psnrs))
 
 
 def should_stop(cfg: TrainConfig, st: LoopState) -> str | None:
+    """The reason to stop now, or None. The time budget keeps the last evaluation's duration in
+    reserve for the final one."""
     if cfg.steps and st.step >= cfg.steps:
         return "steps"
-    if cfg.time_budget_s and st.wall_s >= cfg.time_budget_s:
+    if cfg.time_budget_s and st.elapsed_s + st.eval_cost_s >= cfg.time_budget_s:
         return "time_budget"
     if cfg.patience and st.evals_since_best >= cfg.patience:
         return "converged"
@@ -64,17 +77,27 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
     """
     model.train()
     total = cfg.steps or None
+    clock = time.perf_counter()
+
+    def tick() -> None:  # everything since the last tick counts towards elapsed_s
+        nonlocal clock
+        now = time.perf_counter()
+        st.elapsed_s += now - clock
+        clock = now
+
     while (reason := should_stop(cfg, st)) is None:
         if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
             raise KeyboardInterrupt
         if held_cams is not None and st.wall_s - st.last_eval_wall >= cfg.eval_every_s:
-            _evaluate(model, held_cams, held_imgs, cfg, st, log)
+            _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
+            tick()
             if (reason := should_stop(cfg, st)) is not None:
                 break
         t0 = time.perf_counter()
         stats = model.train_step(data, st.step)
         st.wall_s += time.perf_counter() - t0
         st.step += 1
+        tick()
         if not math.isfinite(stats.get("loss", 0.0)):
             log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_loss"})
             raise FloatingPointError(f"the loss became {stats.get('loss')} at step {st.step}")
@@ -88,9 +111,11 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
             require_finite_parameters(model, st, log)
             checkpoint(st)
             st.last_ckpt_wall = st.wall_s
+            tick()
     require_finite_parameters(model, st, log)
     if held_cams is not None and st.last_eval_wall < st.wall_s:
-        _evaluate(model, held_cams, held_imgs, cfg, st, log)
+        _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
+        tick()
     return reason
 
 
@@ -104,9 +129,10 @@ def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict],
         raise FloatingPointError(f"non-finite values in {', '.join(bad[:3])} after step {st.step}")
 
 
-def _evaluate(model, cams, imgs, cfg, st: LoopState, log) -> None:
+def _evaluate(model, cams, imgs, cfg, st: LoopState, log, interrupted) -> None:
     t0 = time.perf_counter()
-    psnr = heldout_psnr(model, cams, imgs)
+    psnr = heldout_psnr(model, cams, imgs, interrupted)
+    st.eval_cost_s = time.perf_counter() - t0
     st.last_eval_wall = st.wall_s
     if psnr > st.best_psnr + cfg.min_improvement_db:
         st.best_psnr, st.evals_since_best = psnr, 0
@@ -114,7 +140,7 @@ def _evaluate(model, cams, imgs, cfg, st: LoopState, log) -> None:
         st.best_psnr = max(st.best_psnr, psnr)
         st.evals_since_best += 1
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "test_psnr": round(psnr, 4),
-         "eval_s": round(time.perf_counter() - t0, 3)})
+         "eval_s": round(st.eval_cost_s, 3), "elapsed_s": round(st.elapsed_s + st.eval_cost_s, 3)})
 
 
 def _round(stats: dict) -> dict:

@@ -20,8 +20,9 @@ from recon.models.base import METHODS, MethodSpec
 from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint, save_torch
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
+from recon.train.resolution import MEASURED_THREADS, WorkingResolution, choose_resolution, downscale_for_max_side
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
-from recon.workspace.scene import Scene, load_images, load_scene, load_train_data
+from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
 from recon.workspace.workspace import software_versions
 
 MODEL_FILE = "model.pt"
@@ -91,6 +92,48 @@ def heldout_views(scene: Scene, n: int) -> list[int]:
         return []
     pick = np.linspace(0, len(test) - 1, min(n, len(test))).round().astype(int)
     return [test[i] for i in sorted(set(pick.tolist()))]
+
+
+def working_resolution(scene: Scene, spec: MethodSpec, cfg: TrainConfig, device: torch.device,
+                       ) -> WorkingResolution:
+    """The pyramid level this run trains at (see `recon.train.resolution`)."""
+    width, height = scene.image_size("train")
+    threads = cfg.threads or torch.get_num_threads() or MEASURED_THREADS
+    return choose_resolution(width, height, len(scene.split("train")), spec.resolution,
+                             cfg.time_budget_s, cfg.steps, threads, device.type == "cpu",
+                             cfg.max_side, cfg.downscale)
+
+
+def trained_resolution(run_doc: dict, scene: Scene) -> WorkingResolution:
+    """The working resolution recorded in a run.json (runs from before working resolutions
+    existed trained on the sfm images themselves)."""
+    saved = run_doc.get("resolution", {}).get("working")
+    if saved:
+        return WorkingResolution(**saved)
+    return WorkingResolution(1, *scene.image_size("train"), "downscale", "recorded before levels existed")
+
+
+def output_levels(scene: Scene, run_doc: dict, max_side: int = 0, downscale: int = 0,
+                  ) -> tuple[int, int]:
+    """(output level, render level) for `recon eval` / `recon render` of a run: the output is
+    at `downscale`, or the level that fits `max_side`, or by default the run's training level;
+    it is rendered at the finer of the output and training levels (a coarser output is then
+    area-downsampled from the render, like the photos of that level)."""
+    trained = trained_resolution(run_doc, scene).downscale
+    if downscale:
+        out = downscale
+    elif max_side:
+        out = downscale_for_max_side(*scene.image_size("train"), max_side)
+    else:
+        out = trained
+    return out, min(out, trained)
+
+
+def eval_downscale(scene: Scene, train_downscale: int, max_side: int) -> int:
+    """The level of the periodic held-out PSNR: the training level, or coarser so that the
+    longer side is at most `max_side` (a few small renders, cheap inside the time budget)."""
+    width, height = scene.image_size("train")
+    return max(train_downscale, downscale_for_max_side(width, height, max_side) if max_side else 1)
 
 
 def model_path(ws: Workspace, run: str) -> Path:
@@ -170,8 +213,10 @@ def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progre
     if resume:
         saved = json.loads(ws.run_json(run).read_text())
         method_cfg = spec.config_cls(**_tuples(spec.config_cls, saved["config"]))
-        cfg = TrainConfig(**{**saved["train"], **{k: v for k, v in asdict(cfg).items()
-                                                   if k in ("steps", "time_budget_s", "patience")}})
+        train_fields = {f for f in TrainConfig.__dataclass_fields__}
+        cfg = TrainConfig(**{**{k: v for k, v in saved["train"].items() if k in train_fields},
+                             **{k: v for k, v in asdict(cfg).items()
+                                if k in ("steps", "time_budget_s", "patience")}})
     else:
         method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
     try:
@@ -193,13 +238,25 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     started = time.time()
     seed_everything(cfg.seed)
     scene = load_scene(ws)
-    data = load_train_data(ws, scene, "train", device)
+    if resume:  # the level the run started at, whatever budget the resume gives
+        res = trained_resolution(json.loads(ws.run_json(run).read_text()), scene)
+    else:
+        res = working_resolution(scene, spec, cfg, device)
+    sfm_w, sfm_h = scene.image_size("train")
+    log_fn(f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
+           f"{res.reason}")
+    data = load_train_data(ws, scene, "train", device, res.downscale)
     held = heldout_views(scene, cfg.eval_views)
-    held_cams = scene.cameras(held, device) if held else None
-    held_imgs = load_images(ws, scene, held).to(device) if held else None
+    k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
+    held_cams = scene.cameras(held, device, k_eval) if held else None
+    held_imgs = load_images(ws, scene, held, k_eval).to(device) if held else None
     model = spec.build(method_cfg, scene.info).to(device)
+    resolution = {"working": res.to_json(), "sfm_size": [sfm_w, sfm_h],
+                  "periodic_eval": {"downscale": k_eval,
+                                    "size": list(level_size(sfm_w, sfm_h, k_eval))}}
     run_doc = {"run": run, "method": spec.name, "preset": cfg.preset, "seed": cfg.seed,
-               "config": asdict(method_cfg), "train": asdict(cfg), "versions": software_versions(),
+               "config": asdict(method_cfg), "train": asdict(cfg), "resolution": resolution,
+               "versions": software_versions(),
                "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "status": "running"}
     st = LoopState()
     log_path = ws.log_jsonl(run)
@@ -237,7 +294,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
                                      "lower the learning rates (see --list-options)")
         model.load_state_dict(ck["model"])
         model.load_training_state(ck["training"])
-        state = LoopState(**ck["loop"])
+        state = LoopState(**{**ck["loop"], "elapsed_s": st.elapsed_s})  # time spent stays spent
         torch.manual_seed(cfg.seed + 7919 * (rollbacks + 1))
         model.reseed(cfg.seed + 7919 * (rollbacks + 1))
         lr_scale.scale *= ROLLBACK_LR_FACTOR
@@ -248,6 +305,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         return state
 
     checkpoint(st)  # a known-good state to roll back to
+    st.elapsed_s += time.time() - started  # setup (loading, pyramid level, first checkpoint) counts
     stop = {"requested": False}
 
     def request_stop(signum, frame):
@@ -283,7 +341,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     log_file.close()
     save_model(ws, run, spec.name, asdict(method_cfg), model)
     summary = {**run_doc, "status": "done", "stop_reason": reason, "steps": st.step,
-               "train_wall_s": round(st.wall_s, 3),
+               "train_wall_s": round(st.wall_s, 3), "elapsed_s": round(st.elapsed_s, 3),
                "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
                "model_stats": {k: float(v) for k, v in model.stats().items()},
                "model_bytes": os.path.getsize(model_path(ws, run)),

@@ -1,4 +1,6 @@
-"""Load the normalized scene written by `recon sfm` into tensors for the methods."""
+"""Load the normalized scene written by `recon sfm` into tensors for the methods, at any level
+of the workspace's image pyramid (`images_<K>/`: the sfm images area-downsampled by K, built
+once on first use and shared by every run, eval and render)."""
 
 from __future__ import annotations
 
@@ -9,11 +11,22 @@ import numpy as np
 import torch
 
 from recon.cameras.cameras import Cameras
-from recon.io.images import read_image
+from recon.io.images import read_image, resize_area, write_png
 from recon.io.ply import read_points_ply
 from recon.models.base import SceneInfo, TrainData
 from recon.sfm.normalize import Similarity
+from recon.workspace.atomic import atomic_dir, atomic_write_json
+from recon.workspace.hashing import hash_file
 from recon.workspace.workspace import Workspace, WorkspaceError
+
+PYRAMID_MANIFEST = "pyramid.json"
+
+
+def level_size(width: int, height: int, downscale: int) -> tuple[int, int]:
+    """Image size at pyramid level `downscale`: (W // K, H // K), at least 1 pixel. The level
+    covers the same field of view, so its intrinsics scale by exactly W'/W and H'/H
+    (`Cameras.resized`). Example: 1076 x 1913 at K = 4 -> 269 x 478."""
+    return max(1, width // downscale), max(1, height // downscale)
 
 
 @dataclass
@@ -28,14 +41,24 @@ class Scene:
     def split(self, name: str) -> list[int]:
         return [i for i, f in enumerate(self.frames) if f["split"] == name]
 
-    def cameras(self, indices: list[int], device="cpu") -> Cameras:
+    def cameras(self, indices: list[int], device="cpu", downscale: int = 1) -> Cameras:
+        """The frames' cameras for images at pyramid level `downscale` (1: the sfm images)."""
         fr = [self.frames[i] for i in indices]
         K = torch.tensor([[[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]] for f in fr],
                          dtype=torch.float64)
         c = torch.tensor([f["cam_from_world"] for f in fr], dtype=torch.float64)
         w = torch.tensor([f["width"] for f in fr], dtype=torch.int64)
         h = torch.tensor([f["height"] for f in fr], dtype=torch.int64)
-        return Cameras(K, c, w, h).to(device=device, dtype=torch.float32)
+        cams = Cameras(K, c, w, h)
+        if downscale != 1:
+            sizes = [level_size(f["width"], f["height"], downscale) for f in fr]
+            cams = cams.resized(torch.tensor([s[0] for s in sizes]), torch.tensor([s[1] for s in sizes]))
+        return cams.to(device=device, dtype=torch.float32)
+
+    def image_size(self, split: str = "train") -> tuple[int, int]:
+        """(W, H) of the split's sfm images (the largest, should they differ)."""
+        idx = self.split(split) or list(range(len(self.frames)))
+        return (max(self.frames[i]["width"] for i in idx), max(self.frames[i]["height"] for i in idx))
 
     def depth_to_world_units(self, depth: np.ndarray) -> np.ndarray:
         """z-depth in the normalized frame -> original (metric) units."""
@@ -62,17 +85,52 @@ def load_scene(ws: Workspace, with_points: bool = True) -> Scene:
     return Scene(doc["frames"], sim, info, doc.get("gt_mesh"))
 
 
-def load_images(ws: Workspace, scene: Scene, indices: list[int]) -> torch.Tensor:
-    """(C, H, W, 3) float32 images of the given frames (all of one size)."""
-    imgs = [read_image(ws.resolve(scene.frames[i]["image"]))[..., :3] for i in indices]
+def ensure_pyramid_level(ws: Workspace, scene: Scene, downscale: int) -> None:
+    """Build `images_<K>/` (every frame's sfm image area-resampled to `level_size`) unless it
+    exists for the current sfm output; a rerun of sfm makes the level stale and it is rebuilt.
+    Built in a temporary folder and swapped in; concurrent builders wait for each other."""
+    if downscale == 1:
+        return
+    if downscale < 1:
+        raise WorkspaceError(f"downscale must be a positive integer, got {downscale}")
+    level = ws.pyramid_dir(downscale)
+    source = hash_file(ws.cameras_json)
+    if _level_source(level) == source:
+        return
+    with ws.writer_lock(f"pyramid-{downscale}", wait=True):
+        if _level_source(level) == source:  # built by another process while we waited
+            return
+        with atomic_dir(level) as tmp:
+            for f in scene.frames:
+                rel = ws.level_image(f["image"], downscale).relative_to(level)
+                img = read_image(ws.resolve(f["image"]))[..., :3]
+                write_png(tmp / rel, resize_area(img, *level_size(f["width"], f["height"], downscale)))
+            atomic_write_json(tmp / PYRAMID_MANIFEST, {"downscale": downscale, "source": source})
+
+
+def _level_source(level) -> str | None:
+    """The cameras.json hash a pyramid level was built from (None if absent or unreadable)."""
+    try:
+        return json.loads((level / PYRAMID_MANIFEST).read_text()).get("source")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def load_images(ws: Workspace, scene: Scene, indices: list[int], downscale: int = 1) -> torch.Tensor:
+    """(C, H, W, 3) float32 images of the given frames (all of one size) at pyramid level
+    `downscale` (built on first use)."""
+    ensure_pyramid_level(ws, scene, downscale)
+    imgs = [read_image(ws.level_image(scene.frames[i]["image"], downscale))[..., :3] for i in indices]
     shapes = {im.shape for im in imgs}
     if len(shapes) > 1:
         raise WorkspaceError(f"training images have different sizes {sorted(shapes)}; rerun sfm with one camera")
     return torch.from_numpy(np.stack(imgs))
 
 
-def load_train_data(ws: Workspace, scene: Scene, split: str = "train", device="cpu") -> TrainData:
+def load_train_data(ws: Workspace, scene: Scene, split: str = "train", device="cpu",
+                    downscale: int = 1) -> TrainData:
     idx = scene.split(split)
     if not idx:
         raise WorkspaceError(f"the scene has no '{split}' images")
-    return TrainData(load_images(ws, scene, idx).to(device), scene.cameras(idx, device))
+    return TrainData(load_images(ws, scene, idx, downscale).to(device),
+                     scene.cameras(idx, device, downscale))

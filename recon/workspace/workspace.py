@@ -3,7 +3,9 @@
 Layout (SPEC §2):
     WS/workspace.json          schema_version + one record per stage output
     WS/images/                 undistorted training images (PNG, composited on the background)
+    WS/images_<K>/             the same images area-downsampled by K (built on first use, shared)
     WS/sfm/                    sparse/ (COLMAP binary model), cameras.json, points.ply, report.json
+    WS/sfm/frames/             frames taken from input videos (only for video input)
     WS/runs/<run>/             run.json, log.jsonl, checkpoints/, renders/, mesh/, eval/
     WS/report.md, WS/speed_vs_error.png
 """
@@ -117,9 +119,26 @@ class Workspace:
     def images_dir(self) -> Path:
         return self.root / "images"
 
+    def pyramid_dir(self, downscale: int) -> Path:
+        """Level `downscale` of the image pyramid: `images/` itself for 1, else `images_<K>/`
+        (the layout nerfstudio and COLMAP users know)."""
+        return self.images_dir if downscale == 1 else self.root / f"images_{downscale}"
+
+    def level_image(self, recorded: str, downscale: int) -> Path:
+        """A frame's image (as recorded in cameras.json, relative to the root) at a pyramid level."""
+        path = self.resolve(recorded)
+        if downscale == 1:
+            return path
+        return self.pyramid_dir(downscale) / path.relative_to(self.images_dir)
+
     @property
     def sfm_dir(self) -> Path:
         return self.root / "sfm"
+
+    @property
+    def frames_dir(self) -> Path:
+        """Frames taken from the input video(s), as `<video stem>_<frame index>.png`."""
+        return self.sfm_dir / "frames"
 
     @property
     def cameras_json(self) -> Path:
@@ -193,8 +212,9 @@ class Workspace:
 
     # ---- locks -----------------------------------------------------------------------------
     @contextlib.contextmanager
-    def writer_lock(self, scope: str):
-        """Exclusive lock for one writer of `scope` ("sfm", "run-<name>"); fails fast.
+    def writer_lock(self, scope: str, wait: bool = False):
+        """Exclusive lock for one writer of `scope` ("sfm", "run-<name>"); fails fast unless
+        `wait` (a shared cache such as a pyramid level, which the second writer then reuses).
 
         flock is released by the kernel when the process dies, so a killed writer never
         leaves a stale lock behind.
@@ -203,7 +223,7 @@ class Workspace:
         lock_dir.mkdir(parents=True, exist_ok=True)
         f = open(lock_dir / f"{scope}.lock", "a+")
         try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(f, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         except OSError as e:
             f.close()
             if e.errno in (errno.EAGAIN, errno.EACCES):

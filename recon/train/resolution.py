@@ -1,0 +1,104 @@
+"""The working resolution of a training run: the pyramid level (an integer downscale K of the
+sfm images) chosen from the scene, the method and the budget, or set by the user.
+
+A CPU cannot fit a 12-megapixel photo collection in minutes: the training images must be small
+enough that the budget covers enough passes over them. With a time budget T, a method that gets
+through `pixels_per_s` training pixels a second (scaled by threads / 2, the measured setting)
+makes T * pixels_per_s / (C * W_K * H_K) passes ("epochs") over C views of W_K x H_K pixels; a
+--steps run makes steps * pixels_per_step of them. The chosen level is the finest one that still
+gives `min_epochs`, never finer than `max_side` on the longer side and never coarser than
+`MIN_SIDE` (INRIA's 3DGS and nerfstudio cap photos at ~1.6k px in the same spirit, with no
+budget in the rule).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from recon.models.base import ResolutionPolicy
+from recon.workspace.scene import level_size
+
+MIN_SIDE = 128  # the automatic choice never trains on a longer side below this
+MEASURED_THREADS = 2  # the CPU throughputs of ResolutionPolicy were measured at 2 threads
+
+
+@dataclass(frozen=True)
+class WorkingResolution:
+    downscale: int  # pyramid level: the sfm images downscaled by this integer
+    width: int
+    height: int
+    source: str  # auto | max_side | downscale (which rule or option decided)
+    reason: str  # one sentence for the log and run.json
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def epochs_at(width: int, height: int, n_views: int, policy: ResolutionPolicy, time_budget_s: float,
+              steps: int, threads: int) -> float | None:
+    """Passes over every training pixel the budget allows at this size. Only the bounds that
+    depend on the size count: a --steps run of a method that trains on one whole image per step
+    makes steps / n_views passes at any size. None: no such bound."""
+    pixels = n_views * width * height
+    bounds = []
+    if time_budget_s > 0:
+        bounds.append(time_budget_s * policy.pixels_per_s * threads / MEASURED_THREADS / pixels)
+    if steps > 0 and policy.pixels_per_step > 0:
+        bounds.append(steps * policy.pixels_per_step / pixels)
+    return min(bounds) if bounds else None
+
+
+def downscale_for_max_side(width: int, height: int, max_side: int) -> int:
+    """The smallest K whose level has a longer side <= max_side (1 if the images already fit)."""
+    k = 1
+    while max(level_size(width, height, k)) > max_side and max(level_size(width, height, k)) > 1:
+        k += 1
+    return k
+
+
+def choose_resolution(width: int, height: int, n_views: int, policy: ResolutionPolicy,
+                      time_budget_s: float = 0.0, steps: int = 0, threads: int = MEASURED_THREADS,
+                      cpu: bool = True, max_side: int = 0, downscale: int = 0) -> WorkingResolution:
+    """The working resolution for C = n_views training images of width x height (the sfm size).
+
+    `downscale` / `max_side` (the user's options) override the rule. On a CPU with a time
+    budget: the finest K (coarsest at the `MIN_SIDE` floor) whose `epochs_at` reaches
+    `policy.min_epochs`, capped at `policy.max_side`. Elsewhere (no budget, or a GPU, where
+    the CPU throughput says nothing) the cap alone decides.
+    Example: fox, 58 views of 1076 x 1913, 3dgs (350k px/s, 30 epochs), 600 s on 2 threads ->
+    K = 5 (215 x 382: 44 epochs; K = 4 would give 28).
+    """
+    def result(k: int, source: str, reason: str) -> WorkingResolution:
+        w, h = level_size(width, height, k)
+        return WorkingResolution(k, w, h, source, reason)
+
+    if downscale:
+        return result(downscale, "downscale", f"--downscale {downscale} was given")
+    if max_side:
+        return result(downscale_for_max_side(width, height, max_side), "max_side",
+                      f"--max-side {max_side} was given")
+    k_cap = downscale_for_max_side(width, height, policy.max_side)
+    cap_note = f"the longer side is capped at {policy.max_side} px"
+    if not cpu or epochs_at(width, height, n_views, policy, time_budget_s, steps, threads) is None:
+        why = "no budget that depends on the image size" if cpu else "no measured throughput on this device"
+        return result(k_cap, "auto", f"{why}: {cap_note}")
+    k_floor = max(k_cap, downscale_for_max_side(width, height, MIN_SIDE))
+    k = k_cap
+    while k < k_floor and epochs_at(*level_size(width, height, k), n_views, policy, time_budget_s,
+                                    steps, threads) < policy.min_epochs:
+        k += 1
+    epochs = epochs_at(*level_size(width, height, k), n_views, policy, time_budget_s, steps, threads)
+    budget = " and ".join(x for x in (f"{time_budget_s:g} s" if time_budget_s > 0 else "",
+                                      f"{steps} steps" if steps > 0 else "") if x)
+    why = (f"{budget} at ~{policy.pixels_per_s * threads / MEASURED_THREADS / 1e3:.0f}k px/s give "
+           f"{epochs:.0f} passes over the {n_views} training views at this size "
+           f"(>= {policy.min_epochs:g} wanted)")
+    if k > k_cap:
+        finer = epochs_at(*level_size(width, height, k - 1), n_views, policy, time_budget_s, steps,
+                          threads)
+        why += f"; 1/{k - 1} would give {finer:.0f}" if k > 2 else f"; full size would give {finer:.0f}"
+    if epochs < policy.min_epochs:
+        why += f"; not coarser than {MIN_SIDE} px on the longer side"
+    elif k == k_cap and k_cap > 1:
+        why += f"; {cap_note}"
+    return result(k, "auto", why)
