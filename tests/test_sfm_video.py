@@ -105,34 +105,42 @@ def test_sharpest_in_windows_worked_example_ties_and_brute_force():
         assert sharpest_in_windows(scores, bounds).tolist() == brute
 
 
-def test_synthetic_sequence_blurred_windows_are_dropped():
-    """24 frames of a slowly panning texture in 8 windows of 3. Every window has one sharp
-    frame (at a known position) between slightly blurred ones, except windows 2 and 6, shot
-    "during a fast pan": all three of their frames are blurred with sigma >= 2 px. Window
-    selection must pick the known sharp frames, and the blur test must drop exactly the best
-    frames of windows 2 and 6."""
-    base = texture(200, 320, seed=5)
-    sharp_at = [1, 3, 7, 9, 13, 16, 19, 23]  # one per window of 3 frames
-    pan_windows = {2, 6}
+SHARP_AT = [1, 3, 7, 9, 13, 16, 19, 23]  # the one sharp frame of each window of 3
+PAN_WINDOWS = (2, 6)  # windows whose frames are all blurred
+
+
+def pan_sequence(h: int = 200, w: int = 320) -> list[np.ndarray]:
+    """24 frames of a slowly panning texture, meant as 8 windows of 3. Every window has one
+    sharp frame (SHARP_AT) between slightly blurred ones (sigma 1 px), except PAN_WINDOWS,
+    shot "during a fast pan": their frames are blurred with sigma 2, 3, 4 px."""
+    base = texture(h, w, seed=5)
     frames = []
     for i in range(24):
-        window = i // 3
         view = np.roll(base, 2 * i, axis=1)  # a 2 px pan per frame
-        if window in pan_windows:
+        if i // 3 in PAN_WINDOWS:
             view = cv2.GaussianBlur(view, (0, 0), 2.0 + (i % 3))
-        elif i not in sharp_at:
+        elif i not in SHARP_AT:
             view = cv2.GaussianBlur(view, (0, 0), 1.0)
         frames.append(view)
-    scores = np.array([frame_sharpness(f) for f in frames])
-    bounds = window_bounds(len(frames), 8)
-    chosen = sharpest_in_windows(scores, bounds)
-    expected = [sharp_at[w] if w not in pan_windows else 3 * w for w in range(8)]  # sigma 2
-    assert chosen.tolist() == expected
+    return frames
+
+
+# per window: the sharp frame, or the least blurred (sigma 2) first frame of a pan window
+EXPECTED_CHOSEN = [SHARP_AT[w] if w not in PAN_WINDOWS else 3 * w for w in range(8)]
+EXPECTED_DROPPED = [3 * w for w in PAN_WINDOWS]
+
+
+def test_synthetic_sequence_blurred_windows_are_dropped():
+    """Window selection picks the known sharp frames; the blur test drops exactly the best
+    frames of the pan windows."""
+    scores = np.array([frame_sharpness(f) for f in pan_sequence()])
+    chosen = sharpest_in_windows(scores, window_bounds(len(scores), 8))
+    assert chosen.tolist() == EXPECTED_CHOSEN
     threshold = blur_threshold(scores[chosen], VideoConfig().blur_ratio)
     dropped = chosen[scores[chosen] < threshold]
-    assert dropped.tolist() == [6, 18]
+    assert dropped.tolist() == EXPECTED_DROPPED
     # the numbers behind it: blurred windows' best is far under the ratio, sharp ones far above
-    sharp_scores = scores[[c for w, c in enumerate(chosen) if w not in pan_windows]]
+    sharp_scores = scores[[c for w, c in enumerate(chosen) if w not in PAN_WINDOWS]]
     assert sharp_scores.min() > 2 * threshold and scores[dropped].max() < 0.5 * threshold
 
 

@@ -35,14 +35,46 @@ def new_or_existing_workspace(root: Path):
         raise
 
 
-def _photo_sfm(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress):
+def _photo_sfm(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress,
+               video) -> dict:
     from recon.sfm.photo_stage import photos_to_workspace
 
-    return photos_to_workspace(images, ws, cfg, options, progress)
+    return photos_to_workspace(images, ws, cfg, options, progress, video)
+
+
+def _video_config(images: Path, frames: int | None, fps: float | None, blur_ratio: float | None):
+    """The VideoConfig of the flags (None when none was given); a flag without a video in the
+    input is an error rather than silently ignored."""
+    if frames is None and fps is None and blur_ratio is None:
+        return None
+    from recon.sfm.photo_stage import video_files
+    from recon.sfm.video import VideoConfig, validate_video_config
+
+    if not video_files(images):
+        raise ValueError(f"--frames, --fps and --blur-ratio apply to videos; {images} has none")
+    if frames is not None and fps is not None:
+        raise ValueError("give either --frames or --fps, not both")
+    default = VideoConfig()
+    config = VideoConfig(frames=0 if fps is not None else default.frames if frames is None else frames,
+                         fps=0.0 if fps is None else fps,
+                         blur_ratio=default.blur_ratio if blur_ratio is None else blur_ratio)
+    validate_video_config(config)
+    return config
+
+
+def _summary_line(report: dict, root: Path) -> str:
+    line = f"sfm: {report['images']} images {report['splits']} -> {root / 'sfm'}"
+    video = report.get("video")
+    if video:
+        n = video["videos_given"]
+        line += (f"; {n} video{'s' if n > 1 else ''}: {video['frames_decoded']} frames decoded, "
+                 f"{video['frames_chosen']} extracted (sharpest per window), "
+                 f"{video['frames_kept']} kept ({video['frames_blurred']} too blurred)")
+    return line
 
 
 @click.command()
-@click.argument("images", required=False, type=click.Path(path_type=Path))
+@click.argument("images", metavar="[PHOTOS|VIDEO]", required=False, type=click.Path(path_type=Path))
 @workspace_option
 @click.option("--from-transforms", "transforms", type=click.Path(path_type=Path),
               help="Known poses: a transforms*.json (nerfstudio / instant-ngp / Blender) or a folder "
@@ -70,15 +102,23 @@ def _photo_sfm(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, pro
 @click.option("--single-camera/--multi-camera", default=True, show_default=True,
               help="Photos: one shared camera (one device) or one per image.")
 @click.option("--seed", default=0, show_default=True, help="Photos: random seed.")
+@click.option("--frames", "frames", type=int, default=None,
+              help="Video: about this many frames in all, evenly over the video(s) [default: 100].")
+@click.option("--fps", "fps", type=float, default=None,
+              help="Video: instead of --frames, this many frames per second of video.")
+@click.option("--blur-ratio", "blur_ratio", type=float, default=None,
+              help="Video: drop a frame (the sharpest of its window) whose sharpness is under this "
+                   "x the video's median [default: 0.35; 0 keeps all].")
 @json_option
 @click.pass_context
 def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale, background,
         scene_kind, holdout_every, max_image_size, matcher, mapper, camera_model, single_camera,
-        seed, as_json):
+        seed, frames, fps, blur_ratio, as_json):
     """Camera poses and sparse points -> WS/sfm/ (COLMAP model, cameras.json, points.ply, report).
 
     \b
     recon sfm PHOTOS -w WS                      structure from motion (COLMAP via pycolmap)
+    recon sfm VIDEO|FOLDER -w WS [--frames N]   ... on frames of a video (or of a folder's videos)
     recon sfm --from-transforms F|DIR -w WS     known poses (transforms*.json)
     recon sfm --from-colmap MODEL -w WS         known poses (COLMAP model)
     """
@@ -91,13 +131,16 @@ def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale
     with Progress(enabled=not as_json) as progress:
         if images is not None:
             if not images.exists():
-                raise SourceError(f"photo folder {images} does not exist")
-            options = dict(max_image_size=max_image_size, matcher=matcher, mapper=mapper,
-                           camera_model=camera_model, single_camera=single_camera, seed=seed,
-                           verbose=ctx.obj["verbose"])
+                raise SourceError(f"photo folder or video {images} does not exist")
+            video = _video_config(images, frames, fps, blur_ratio)
+            options = {"max_image_size": max_image_size, "matcher": matcher, "mapper": mapper,
+                       "camera_model": camera_model, "single_camera": single_camera, "seed": seed,
+                       "verbose": ctx.obj["verbose"]}
             with new_or_existing_workspace(root) as ws:
-                report = _photo_sfm(images, ws, cfg, options, progress)
+                report = _photo_sfm(images, ws, cfg, options, progress, video)
         else:
+            if frames is not None or fps is not None or blur_ratio is not None:
+                raise ValueError("--frames, --fps and --blur-ratio apply to video input only")
             if transforms is not None:
                 posed = read_transforms(transforms, holdout_every)
                 inputs = {"source": transforms}
@@ -115,4 +158,4 @@ def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale
     if as_json:
         emit_json({"workspace": str(root), **report})
     else:
-        click.echo(f"sfm: {report['images']} images {report['splits']} -> {root / 'sfm'}")
+        click.echo(_summary_line(report, root))
