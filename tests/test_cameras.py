@@ -91,3 +91,31 @@ def test_cameras_scaled_keeps_pixel_edges():
     # the image centre (pixel edge coordinates) maps to the centre
     uv, _ = project_points(torch.tensor([0.0, 0.0, 1.0]), half.K[0])
     assert uv.tolist() == [160.0, 120.0]
+
+
+def test_scale_intrinsics_worked_example():
+    from recon.cameras.cameras import scale_intrinsics
+
+    K = intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (1385.3, 1385.3, 538.0, 956.5)))
+    K4 = scale_intrinsics(K, 269 / 1076, 478 / 1913)
+    assert K4[0, 0].item() == pytest.approx(346.325) and K4[0, 2].item() == pytest.approx(134.5)
+    assert K4[1, 1].item() == pytest.approx(1385.3 * 478 / 1913) and K4[1, 2].item() == pytest.approx(239.0, abs=0.07)
+
+
+def test_resized_pixel_centres_are_the_centres_of_the_pixel_blocks():
+    """An area-downsampled pixel averages a K x K block of the full image: the ray through its
+    centre must be the ray through the centre of that block (the +0.5 convention kept)."""
+    K = intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (500.0, 520.0, 311.3, 205.7)))
+    cams = Cameras(K[None], torch.eye(4, dtype=torch.float64)[None], torch.tensor([640]), torch.tensor([480]))
+    level = cams.resized(160, 120)  # K = 4
+    o_l, d_l, _ = camera_rays(level, 0)  # (120, 160, 3)
+    o_f, d_f, _ = camera_rays(cams, 0)
+    # the block of level pixel (row 7, col 11) is full rows 28-31, cols 44-47, i.e. [44, 48) x
+    # [28, 32) in edge coordinates: its centre is u = 46, v = 30 (the corner of 4 full pixels)
+    uv = torch.tensor([[46.0, 30.0]], dtype=torch.float64)
+    from recon.cameras.rays import rays_from_pixels
+
+    _, d_block, _ = rays_from_pixels(uv, K, torch.eye(4, dtype=torch.float64))
+    assert torch.allclose(d_l[7, 11], d_block[0], atol=1e-12)
+    assert not torch.allclose(d_f[7, 11], d_block[0], atol=1e-3)  # (sanity: another ray)
+    assert level.width.item() == 160 and level.height.item() == 120

@@ -93,3 +93,32 @@ def test_depth_errors_mask_and_empty():
     assert out["count"] == 1 and out["abs_rel"] == 0.0 and out["delta_1.25"] == 1.0
     empty = depth_errors(pred, gt, mask=np.zeros((1, 2), bool))
     assert empty["count"] == 0 and math.isnan(empty["rmse"])
+
+
+def test_masked_psnr_with_a_full_mask_is_psnr():
+    from recon.metrics.image import psnr_masked
+
+    a, b = _image(1), _image(2)
+    assert psnr_masked(a, b, torch.ones(32, 40, dtype=torch.bool)).item() == pytest.approx(psnr(a, b).item())
+
+
+def test_masked_psnr_counts_only_the_mask():
+    from recon.metrics.image import psnr_masked
+
+    a = torch.zeros(4, 4, 3, dtype=torch.float64)
+    b = a.clone()
+    b[0] = 0.1  # an error of 0.1 in the top row only
+    mask = torch.zeros(4, 4, dtype=torch.bool)
+    mask[0] = True
+    assert psnr_masked(a, b, mask).item() == pytest.approx(20.0)  # -20 log10(0.1)
+    assert psnr_masked(a, b, ~mask).item() == math.inf
+
+
+def test_border_mask_worked_example():
+    from recon.metrics.image import border_mask
+
+    m = border_mask(20, 10, 0.15)
+    rows = [r for r in range(20) if m[r, 5]]
+    cols = [c for c in range(10) if m[10, c]]
+    assert rows == [0, 1, 2, 17, 18, 19] and cols == [0, 1, 8, 9]
+    assert m.sum().item() == 20 * 10 - 14 * 6

@@ -50,9 +50,28 @@ class TrainData:
     images: Tensor
     cameras: Cameras
     _rays: dict = field(default_factory=dict, repr=False)
+    _levels: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def downsampled(self, factor: int) -> TrainData:
+        """The same views area-downsampled by the integer `factor` (W // f x H // f pixels, the
+        intrinsics scaled exactly: `Cameras.resized`), computed once: the targets of
+        coarse-to-fine training."""
+        if factor == 1:
+            return self
+        if factor not in self._levels:
+            import numpy as np
+
+            from recon.io.images import resize_area
+
+            C, H, W, _ = self.images.shape
+            w, h = max(1, W // factor), max(1, H // factor)
+            small = np.stack([resize_area(im, w, h) for im in self.images.cpu().numpy()])
+            self._levels[factor] = TrainData(torch.from_numpy(small).to(self.images.device),
+                                             self.cameras.resized(w, h))
+        return self._levels[factor]
 
     def rays(self) -> dict[str, Tensor]:
         """Every training pixel as a packed ray table (computed once):
