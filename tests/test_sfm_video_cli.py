@@ -12,6 +12,7 @@ import pytest
 
 from recon.cli.sfm_cmd import _video_config
 from tests.conftest import SAMPLE_DATA, recon_cli
+from tests.test_sfm_video_extract import scramble_frames
 
 BLURRED_VIEWS = (7, 13)  # views filmed "during a fast pan": all their frames are blurred
 
@@ -93,11 +94,7 @@ def test_bad_videos_give_one_line_and_leave_the_workspace_as_it_was(tmp_path, bl
     garbage = tmp_path / "garbage.mp4"
     garbage.write_bytes(np.random.default_rng(0).bytes(5000))
     good = orbit_video(tmp_path / "good.mp4", [0, 1])
-    scrambled = tmp_path / "scrambled.mp4"  # index intact, frame data noise: 0 frames decode
-    data = bytearray(good.read_bytes())
-    start, end = data.find(b"mdat") + 4, data.find(b"moov") - 4
-    data[start:end] = np.random.default_rng(1).bytes(end - start)
-    scrambled.write_bytes(bytes(data))
+    scrambled = scramble_frames(good, tmp_path / "scrambled.mp4")  # opens, 0 frames decode
     wmv = tmp_path / "clip.wmv"
     wmv.write_bytes(b"\0" * 100)
     folder = tmp_path / "mixed"

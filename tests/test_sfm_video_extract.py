@@ -37,6 +37,16 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float = 10.0) -> Path
     return path
 
 
+def scramble_frames(video: Path, out: Path) -> Path:
+    """A copy of an mp4v file whose index is intact and whose frame data is noise: it opens,
+    announces its frames, and none of them decodes."""
+    data = bytearray(video.read_bytes())
+    start, end = data.find(b"mdat") + 4, data.find(b"moov") - 4
+    data[start:end] = np.random.default_rng(1).bytes(end - start)
+    out.write_bytes(bytes(data))
+    return out
+
+
 def ffmpeg(*args: str) -> None:
     subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-loglevel", "error", "-y",
                     *args], check=True, capture_output=True)
@@ -158,11 +168,7 @@ def test_bad_videos_raise_one_line_errors(pan_video, tmp_path):
     garbage.write_bytes(np.random.default_rng(0).bytes(5000))
     header_only = tmp_path / "empty.mp4"  # a writer closed before any frame
     cv2.VideoWriter(str(header_only), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 64)).release()
-    scrambled = tmp_path / "scrambled.mp4"  # intact index, frame data replaced by noise
-    data = bytearray(pan_video.read_bytes())
-    start, end = data.find(b"mdat") + 4, data.find(b"moov") - 4
-    data[start:end] = np.random.default_rng(1).bytes(end - start)
-    scrambled.write_bytes(bytes(data))
+    scrambled = scramble_frames(pan_video, tmp_path / "scrambled.mp4")
     cases = [(garbage, "cannot read video"), (header_only, "cannot read video"),
              (scrambled, "no decodable frames"), (tmp_path / "missing.mp4", "does not exist")]
     for path, message in cases:

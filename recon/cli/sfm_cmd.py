@@ -107,8 +107,8 @@ def _summary_line(report: dict, root: Path) -> str:
 @click.option("--fps", "fps", type=float, default=None,
               help="Video: instead of --frames, this many frames per second of video.")
 @click.option("--blur-ratio", "blur_ratio", type=float, default=None,
-              help="Video: drop a frame (the sharpest of its window) whose sharpness is under this "
-                   "x the video's median [default: 0.35; 0 keeps all].")
+              help="Video: drop a window's sharpest frame if its sharpness is under this x the "
+                   "median over all windows' sharpest [default: 0.35; 0 keeps all].")
 @json_option
 @click.pass_context
 def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale, background,

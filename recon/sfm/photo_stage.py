@@ -13,6 +13,7 @@ import dataclasses
 import os
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
 from recon.sfm.colmap_sfm import SfmConfig, run_sfm
@@ -56,15 +57,16 @@ def link_inputs(photos: list[Path], frames: list[Path], folder: Path) -> None:
         os.symlink(f.resolve(), target)
 
 
-def videos_summary(videos: list[VideoFrames], config: VideoConfig) -> dict:
-    """The `video` section of the sfm report: counts, then one entry per video."""
+def videos_summary(videos: list[VideoFrames], config: VideoConfig, wall_s: float) -> dict:
+    """The `video` section of the sfm report: counts, time, then one entry per video."""
     reports = [video_report(v) for v in videos]
     decoded = sum(r["frames_decoded"] for r in reports)
     chosen = sum(r["windows"] for r in reports)
     kept = sum(r["frames_kept"] for r in reports)
     return {"config": dataclasses.asdict(config), "videos_given": len(videos),
             "frames_decoded": decoded, "frames_chosen": chosen, "frames_kept": kept,
-            "frames_blurred": chosen - kept, "videos": reports}
+            "frames_blurred": chosen - kept, "extraction_wall_s": round(wall_s, 2),
+            "videos": reports}
 
 
 def photos_to_workspace(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress,
@@ -80,14 +82,15 @@ def photos_to_workspace(images: Path, ws: Workspace, cfg: SceneConfig, options: 
                                            {"source": "photos"}, {})
             video = video_config or VideoConfig()
             validate_video_config(video)
-            frames_dir = work / "frames"
+            frames_dir, started = work / "frames", time.perf_counter()
             extracted = extract_videos(videos, frames_dir, video, progress, config.verbose)
+            extract_s = time.perf_counter() - started
             others = [] if Path(images).is_file() else [
                 f for f in list_photo_files(images) if not is_video(f.name)]
             link_inputs(others, [frames_dir / n for v in extracted for n in v.names], work / "input")
             record = {"source": "video" if not others else "photos+video", **dataclasses.asdict(video)}
             return engine_to_workspace(work / "input", images, ws, cfg, config, work, progress, record,
-                                       {"video": videos_summary(extracted, video)},
+                                       {"video": videos_summary(extracted, video, extract_s)},
                                        {str(ws.frames_dir.relative_to(ws.sfm_dir)): frames_dir})
     finally:
         shutil.rmtree(work, ignore_errors=True)
