@@ -62,3 +62,13 @@ def test_downscale_for_max_side():
     assert downscale_for_max_side(1076, 1913, 1913) == 1
     assert downscale_for_max_side(1076, 1913, 1912) == 2
     assert downscale_for_max_side(200, 200, 1600) == 1
+
+
+def test_every_method_keeps_lego_200_at_its_size_under_the_protocol_budgets():
+    """The lego-200 protocol (100 views of 200 x 200; 600 s, nerf 1800 s) trains at full size."""
+    from recon.train.stage import import_methods
+
+    budgets = {"nerf": 1800}
+    for name, spec in import_methods().items():
+        res = choose_resolution(200, 200, 100, spec.resolution, time_budget_s=budgets.get(name, 600))
+        assert res.downscale == 1, (name, res.reason)
