@@ -25,8 +25,10 @@ lint: install
 demo: install
 	$(MAKE) -C pipelines SCENE=sample METHOD=$(or $(METHOD),plenoxel) BUDGET=$(or $(BUDGET),90) all
 
+# lego-200 (every method) + sfm on sample/fox, then fox-real (3dgs and ngp on the real capture)
 bench: install
 	$(BIN)/python pipelines/bench.py
+	$(BIN)/python pipelines/bench_real.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
