@@ -72,3 +72,12 @@ def test_every_method_keeps_lego_200_at_its_size_under_the_protocol_budgets():
     for name, spec in import_methods().items():
         res = choose_resolution(200, 200, 100, spec.resolution, time_budget_s=budgets.get(name, 600))
         assert res.downscale == 1, (name, res.reason)
+
+
+def test_planned_steps_worked_example():
+    from recon.train.resolution import planned_steps
+
+    assert planned_steps(269, 478, SPLATS, 600, 0, 2) == 1633  # 600 * 350e3 / 128582
+    assert planned_steps(269, 478, SPLATS, 600, 1000, 2) == 1000  # --steps comes first
+    assert planned_steps(269, 478, RAYS, 600, 0, 2) == 2400  # 600 * 12e3 / 3000 rays a step
+    assert planned_steps(269, 478, SPLATS, 0, 0, 2) == 0 and planned_steps(269, 478, SPLATS, 600, 0, 2, cpu=False) == 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import random
@@ -20,7 +21,13 @@ from recon.models.base import METHODS, MethodSpec
 from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint, save_torch
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
-from recon.train.resolution import MEASURED_THREADS, WorkingResolution, choose_resolution, downscale_for_max_side
+from recon.train.resolution import (
+    MEASURED_THREADS,
+    WorkingResolution,
+    choose_resolution,
+    downscale_for_max_side,
+    planned_steps,
+)
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
 from recon.workspace.workspace import software_versions
@@ -98,10 +105,25 @@ def working_resolution(scene: Scene, spec: MethodSpec, cfg: TrainConfig, device:
                        ) -> WorkingResolution:
     """The pyramid level this run trains at (see `recon.train.resolution`)."""
     width, height = scene.image_size("train")
-    threads = cfg.threads or torch.get_num_threads() or MEASURED_THREADS
     return choose_resolution(width, height, len(scene.split("train")), spec.resolution,
-                             cfg.time_budget_s, cfg.steps, threads, device.type == "cpu",
+                             cfg.time_budget_s, cfg.steps, _threads(cfg), device.type == "cpu",
                              cfg.max_side, cfg.downscale)
+
+
+def _threads(cfg: TrainConfig) -> int:
+    return cfg.threads or torch.get_num_threads() or MEASURED_THREADS
+
+
+def plan_schedules(method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution,
+                   device: torch.device):
+    """A method whose config has a `schedule_steps` field left at 0 gets the run's planned step
+    count there (`resolution.planned_steps`), to lay its step-based schedules out over the run
+    it will actually have. Returns the (possibly) updated config."""
+    if getattr(method_cfg, "schedule_steps", None) != 0:
+        return method_cfg
+    plan = planned_steps(res.width, res.height, spec.resolution, cfg.time_budget_s, cfg.steps,
+                         _threads(cfg), device.type == "cpu")
+    return dataclasses.replace(method_cfg, schedule_steps=plan) if plan else method_cfg
 
 
 def trained_resolution(run_doc: dict, scene: Scene) -> WorkingResolution:
@@ -242,9 +264,12 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         res = trained_resolution(json.loads(ws.run_json(run).read_text()), scene)
     else:
         res = working_resolution(scene, spec, cfg, device)
+        method_cfg = plan_schedules(method_cfg, spec, cfg, res, device)
     sfm_w, sfm_h = scene.image_size("train")
     log_fn(f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
            f"{res.reason}")
+    if getattr(method_cfg, "schedule_steps", 0):
+        log_fn(f"schedules laid out for a run of ~{method_cfg.schedule_steps} steps")
     data = load_train_data(ws, scene, "train", device, res.downscale)
     held = heldout_views(scene, cfg.eval_views)
     k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
