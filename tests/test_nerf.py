@@ -12,7 +12,7 @@ from recon.fields.encodings import positional_encoding
 from recon.models.base import METHODS, SceneInfo
 from recon.models.nerf import PRESETS, RAY_BUCKET, NeRFConfig, NeRFMLP, NeRFModel
 from recon.models.raymarch import mlp_dtype, ray_bounds
-from recon.volrend import volume_render
+from recon.volrend import scene_to_unit_cube, volume_render
 from recon.volrend.occupancy import cell_points
 
 SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_fine=16,
@@ -213,3 +213,30 @@ def test_a_model_saved_without_occupancy_grid_loads_and_renders_the_same():
     new.load_state_dict(old.state_dict())
     assert new.occupancy is None
     torch.testing.assert_close(new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"])
+
+
+def test_unbounded_scene_seeds_from_points_and_missed_rays_see_the_learned_background():
+    from test_ngp import unbounded_sphere_scene
+
+    data, info = unbounded_sphere_scene(n_cams=3, size=12)
+    model = NeRFModel(SMALL, info)
+    grid = model.occupancy
+    unit = scene_to_unit_cube(info.points, info.aabb, True)
+    assert grid.is_occupied(unit).all() and 0 < grid.occupancy_fraction() < 0.1
+    assert model.environment is not None  # auto: learned for an unbounded scene
+    losses = [model.train_step(data, s)["loss"] for s in range(20)]
+    assert losses[-1] < losses[0] and model.environment.net[2].weight.grad is not None
+    # rays that cross no occupied cell get the environment map, with its gradient
+    grid.occupied.fill_(False)
+    o, d, _ = camera_rays(data.cameras, 0)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    _, fine = model._render_rays(o, d, jitter=False)
+    assert not fine["hit"].any() and (fine["acc"] == 0).all()
+    torch.testing.assert_close(fine["rgb"], model.environment(d))
+    model.optimizer.zero_grad(set_to_none=True)
+    fine["rgb"].sum().backward()
+    assert model.environment.net[0].weight.grad.abs().sum() > 0
+    scene_bg = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "background": "scene"}), info)
+    assert scene_bg.environment is None
+    no_points = NeRFModel(SMALL, SceneInfo(**{**info.__dict__, "points": None}))
+    assert no_points.occupancy.occupied.all()  # as before: every cell until warm-up ends

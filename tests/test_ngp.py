@@ -162,3 +162,75 @@ def test_trunc_exp_value_and_clamped_gradient():
     expected = torch.exp(torch.tensor([-3.0, 0.0, 2.0, 15.0, 15.0], dtype=torch.float64))
     torch.testing.assert_close(x.grad, expected)  # d/dx exp(x) below 15, exp(15) above
     assert torch.autograd.gradcheck(trunc_exp, (torch.tensor([-1.0, 0.5, 3.0], dtype=torch.float64, requires_grad=True),))
+
+
+def sky(directions: torch.Tensor) -> torch.Tensor:
+    """A smooth colour per direction: what a real capture shows behind its scene."""
+    return 0.5 + 0.4 * directions
+
+
+def unbounded_sphere_scene(n_cams: int = 6, size: int = 16, n_points: int = 300):
+    """The sphere in front of a direction-dependent 'sky', as an unbounded scene with SfM-like
+    points on its surface."""
+    cams = ring_cameras(n_cams, size)
+    imgs, _ = sphere_images(cams, torch.zeros(3))
+    for i in range(n_cams):
+        _, d, _ = camera_rays(cams, i)
+        miss = (imgs[i] == 0).all(-1)
+        imgs[i][miss] = sky(d[miss]).float()
+    pts = torch.nn.functional.normalize(torch.randn(n_points, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=True, background=torch.ones(3),
+                     near=0.1, far=100.0, points=RADIUS * pts)
+    return TrainData(imgs, cams), info
+
+
+def test_unbounded_first_step_is_capped_and_seeded_from_points():
+    data, info = unbounded_sphere_scene()
+    cfg = NGPConfig(**{**SMALL.__dict__, "max_samples_per_ray": 40, "cone_angle": 1 / 64, "occupancy_seed_dilation": 1})
+    model = NGPModel(cfg, info)
+    grid = model.occupancy
+    assert grid.is_occupied(model.to_unit(info.points)).all()  # every point's cell
+    assert 0 < grid.occupancy_fraction() < 0.1  # and a thin shell around them, not the whole cube
+    assert not grid.is_occupied(model.to_unit(torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]))).any()
+    stats = model.train_step(data, 0)
+    assert 0 < stats["samples_per_ray"] <= 40
+    unseeded = NGPModel(cfg, SceneInfo(**{**info.__dict__, "points": None}))
+    assert unseeded.occupancy.occupied.all()  # no points: every cell, as before
+    assert unseeded.train_step(data, 0)["samples_per_ray"] == 40  # ~300 steps to t = 100, capped
+
+
+def test_learned_background_fills_what_the_volume_leaves_open():
+    torch.manual_seed(0)
+    data, info = unbounded_sphere_scene()
+    model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64}), info)
+    assert model.environment is not None  # auto: learned for an unbounded scene
+    for step in range(120):
+        model.train_step(data, step)
+    model.eval()
+    out = model.render(data.cameras[0])
+    _, d, _ = camera_rays(data.cameras, 0)
+    sky_px = ((data.images[0] - sky(d)).abs().max(-1).values < 1e-6)
+    assert sky_px.sum() > 30
+    err = (out["rgb"][sky_px] - data.images[0][sky_px]).abs().mean()
+    white = (info.background - data.images[0][sky_px]).abs().mean()
+    assert err < 0.25 * white, (err, white)  # the sky is learned, not the fixed white
+    # a ray that crosses only empty cells sees exactly the environment map
+    model.occupancy.occupied.fill_(False)
+    empty = model.render(data.cameras[0])
+    assert (empty["acc"] == 0).all()
+    torch.testing.assert_close(empty["rgb"], model.environment(d.reshape(-1, 3)).reshape(d.shape))
+    fixed = NGPModel(NGPConfig(**{**SMALL.__dict__, "background": "scene"}), info)
+    assert fixed.environment is None
+    bounded = NGPModel(SMALL, sphere_scene(2, 8)[1])
+    assert bounded.environment is None
+    with pytest.raises(ValueError, match="background"):
+        NGPModel(NGPConfig(**{**SMALL.__dict__, "background": "sky"}), info)
+
+
+def test_a_run_saved_without_learned_background_loads_with_the_scene_colour():
+    data, info = unbounded_sphere_scene(n_cams=2, size=8)
+    old = NGPModel(NGPConfig(**{**SMALL.__dict__, "background": "scene"}), info)
+    new = NGPModel(SMALL, info)
+    new.load_state_dict(old.state_dict())
+    assert new.environment is None
+    torch.testing.assert_close(new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"])

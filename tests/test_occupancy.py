@@ -13,7 +13,15 @@ from recon.volrend import (
     terminated_mask,
     volume_render,
 )
-from recon.volrend.occupancy import _unwarp, _warp, cell_points, cells_of, ray_spans
+from recon.volrend.occupancy import (
+    _unwarp,
+    _warp,
+    cell_points,
+    cells_of,
+    dilated_cells,
+    first_per_ray,
+    ray_spans,
+)
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 CENTRE, RADIUS, SIGMA = torch.tensor([0.2, -0.1, 0.0]), 0.4, 30.0
@@ -146,3 +154,38 @@ def test_march_dispatch_equals_sample_and_spans_hold_every_occupied_sample():
     missed = torch.ones(o.shape[0], dtype=torch.bool)
     missed[ri] = False
     assert missed.any() and (lo[missed] == 0).all() and (hi[missed] == 0).all()
+
+
+def test_first_per_ray_worked_example():
+    ri = torch.tensor([0, 0, 0, 2, 2, 3])
+    assert first_per_ray(ri, 2).tolist() == [True, True, False, True, True, True]
+    assert first_per_ray(ri, 0).all() and first_per_ray(ri, 1).tolist() == [True, False, False, True, False, True]
+
+
+def test_dilated_cells_worked_example_and_edges():
+    centre = cell_points(torch.tensor([1 + 4 * (1 + 4 * 1)]), 4, torch.full((1, 3), 0.5))  # cell (1, 1, 1)
+    mask = dilated_cells(centre, 4, 1)
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    flat = ijk[:, 0] + 4 * (ijk[:, 1] + 4 * ijk[:, 2])
+    expected = torch.zeros(64, dtype=torch.bool)
+    expected[flat[(ijk <= 2).all(-1)]] = True
+    assert torch.equal(mask, expected) and mask.sum() == 27
+    assert torch.equal(dilated_cells(centre, 4, 0).nonzero()[:, 0], torch.tensor([21]))
+    # a corner cell's dilation is cut by the grid, points outside the cube mark nothing
+    corner = dilated_cells(torch.tensor([[0.99, 0.99, 0.99], [1.5, 0.5, 0.5]]), 4, 1)
+    assert corner.sum() == 8 and corner[63]
+
+
+def test_seeded_grid_keeps_its_seed_through_warm_up_then_follows_the_density():
+    grid = OccupancyGrid(32)
+    centre_unit = scene_to_unit_cube(CENTRE[None], AABB, False)
+    grid.seed(centre_unit, 1)
+    assert grid.occupied.sum() == 27 and grid.is_occupied(centre_unit).item()
+    g = torch.Generator().manual_seed(0)
+    step = 2 * math.sqrt(3) / 256
+    grid.update(lambda u: sphere_density(u * 2 - 1), step, warmup=True, generator=g)
+    assert grid.occupied.sum() == 27  # warm-up evaluates every cell but keeps the seed
+    for _ in range(4):
+        grid.update(lambda u: sphere_density(u * 2 - 1), step, warmup=False, fraction=1.0, generator=g)
+    sphere_frac = 4 / 3 * math.pi * RADIUS**3 / 8
+    assert sphere_frac < grid.occupancy_fraction() < 4 * sphere_frac  # the whole sphere, not the seed

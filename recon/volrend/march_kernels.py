@@ -59,8 +59,9 @@ def _occupied(o, d, t, lo, hi, unbounded, occ, res):
 
 
 @numba.njit(cache=True)
-def _march_ray(r, o, d, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, out_s, out_e, write):
-    """Count (write=False) or write the kept intervals of ray r; returns how many."""
+def _march_ray(r, o, d, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, cap, out_s, out_e, write):
+    """Count (write=False) or write the kept intervals of ray r, at most `cap` of them (the
+    first ones, front to back; cap <= 0: no limit); returns how many."""
     if not t_max > t_min:
         return 0
     s_min, s_max = _warp(t_min, step, cone), _warp(t_max, step, cone)
@@ -77,36 +78,39 @@ def _march_ray(r, o, d, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res
                 out_s[n] = start
                 out_e[n] = end
             n += 1
+            if n == cap:
+                break
     return n
 
 
 @numba.njit(parallel=True, cache=True)
-def _count(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, counts):
+def _count(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, cap, counts):
     dummy = np.empty(0, dtype=origins.dtype)
     for r in numba.prange(origins.shape[0]):
         counts[r] = _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, u[r], lo, hi,
-                               unbounded, occ, res, dummy, dummy, False)
+                               unbounded, occ, res, cap, dummy, dummy, False)
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, offsets,
+def _fill(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, cap, offsets,
           ray_indices, starts, ends):
     for r in numba.prange(origins.shape[0]):
         a = offsets[r]
         b = offsets[r + 1]
         if b > a:
             _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, u[r], lo, hi, unbounded,
-                       occ, res, starts[a:b], ends[a:b], True)
+                       occ, res, cap, starts[a:b], ends[a:b], True)
             ray_indices[a:b] = r
 
 
 def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, occupied: Tensor,
                    resolution: int, aabb: Tensor, unbounded: bool, step: float, cone_angle: float = 0.0,
-                   u: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                   u: Tensor | None = None, max_samples: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """Packed (ray_indices (N,), t_starts (N,), t_ends (N,)) of the occupied marching intervals.
 
     origins, dirs: (R, 3) CPU float tensors; t_min, t_max: (R,); occupied: (res^3,) bool;
-    aabb: (2, 3) scene box; u: (R,) start offsets in [0, 1) or None.
+    aabb: (2, 3) scene box; u: (R,) start offsets in [0, 1) or None; max_samples: keep only the
+    first max_samples occupied intervals of each ray (0: all).
     """
     dt = origins.dtype
     o = origins.detach().contiguous().numpy()
@@ -118,7 +122,8 @@ def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, 
     hi = aabb[1].detach().to(dt).contiguous().numpy()
     occ = occupied.contiguous().numpy()
     counts = np.zeros(o.shape[0], dtype=np.int64)
-    _count(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution, counts)
+    _count(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution,
+           int(max_samples), counts)
     offsets = np.zeros(o.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
     n = int(offsets[-1])
@@ -126,5 +131,5 @@ def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, 
     starts = np.empty(n, dtype=o.dtype)
     ends = np.empty(n, dtype=o.dtype)
     _fill(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution,
-          offsets, ray_indices, starts, ends)
+          int(max_samples), offsets, ray_indices, starts, ends)
     return torch.from_numpy(ray_indices), torch.from_numpy(starts), torch.from_numpy(ends)

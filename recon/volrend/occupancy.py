@@ -95,6 +95,15 @@ def terminated_mask(
     return trans >= eps
 
 
+def first_per_ray(ray_indices: Tensor, k: int) -> Tensor:
+    """(N,) bool: True for the first k samples of each ray in packed samples sorted by ray
+    (k <= 0: all). Example: ray_indices [0, 0, 0, 2, 2], k = 2 -> [T, T, F, T, T]."""
+    if k <= 0:
+        return torch.ones_like(ray_indices, dtype=torch.bool)
+    first = torch.searchsorted(ray_indices, ray_indices)  # index of each ray's first sample
+    return torch.arange(ray_indices.shape[0], device=ray_indices.device) - first < k
+
+
 def ray_spans(ray_indices: Tensor, t_starts: Tensor, t_ends: Tensor, n_rays: int,
               pad: float = 0.0) -> tuple[Tensor, Tensor]:
     """Per-ray hull [min t_start - pad, max t_end + pad] of packed intervals (N,) -> (R,) x2.
@@ -113,11 +122,27 @@ def ray_spans(ray_indices: Tensor, t_starts: Tensor, t_ends: Tensor, n_rays: int
     return first, torch.where(hit, last + pad, zero)
 
 
+def dilated_cells(x_unit: Tensor, resolution: int, dilation: int) -> Tensor:
+    """(res^3,) bool: the cells holding a point of x_unit (P, 3) (points outside [0, 1]^3 are
+    ignored), grown by `dilation` cells along each axis (a (2 dilation + 1)^3 cube around each).
+    Example: one point in cell (1, 1, 1) of a 4^3 grid, dilation 1 -> the 27 cells with
+    i, j, k in {0, 1, 2}."""
+    idx, inside = cells_of(x_unit, resolution)
+    mask = torch.zeros(resolution**3, dtype=torch.bool, device=x_unit.device)
+    mask[idx[inside]] = True
+    if dilation > 0:
+        vol = mask.view(1, 1, resolution, resolution, resolution).float()
+        vol = torch.nn.functional.max_pool3d(vol, 2 * dilation + 1, stride=1, padding=dilation)
+        mask = vol.view(-1) > 0
+    return mask
+
+
 class OccupancyGrid(nn.Module):
     """A res^3 occupancy bitfield over the unit cube, updated from a density closure.
 
     Buffers (so `state_dict` carries them for an exact resume): `opacity` (res^3,) float EMA,
-    `occupied` (res^3,) bool, all True until the first update after warm-up.
+    `occupied` (res^3,) bool: all True (or the cells `seed` marked) until the first update
+    after warm-up.
     """
 
     def __init__(self, resolution: int = 128):
@@ -125,6 +150,13 @@ class OccupancyGrid(nn.Module):
         self.resolution = resolution
         self.register_buffer("opacity", torch.zeros(resolution**3))
         self.register_buffer("occupied", torch.ones(resolution**3, dtype=torch.bool))
+
+    @torch.no_grad()
+    def seed(self, x_unit: Tensor, dilation: int) -> None:
+        """Start from the cells around known surface points x_unit (P, 3) (e.g. SfM points mapped
+        to the unit cube) instead of all cells: only these are marched through until the first
+        update after warm-up; from then on the density decides, as always."""
+        self.occupied.copy_(dilated_cells(x_unit.to(self.occupied.device), self.resolution, dilation))
 
     def is_occupied(self, x_unit: Tensor) -> Tensor:
         """(N, 3) unit-cube points -> (N,) bool; points outside the cube are empty."""
@@ -146,8 +178,9 @@ class OccupancyGrid(nn.Module):
         """One EMA update: opacity 1 - exp(-sigma dt) at a jittered point of each chosen cell.
 
         density_fn: unit-cube points (M, 3) -> sigma (M,). During warm-up every cell is
-        evaluated and all cells stay occupied; afterwards a random `fraction` of all cells plus
-        all currently occupied cells (re-checking what we march through most).
+        evaluated and the occupied cells stay as they started (all, or the `seed`); afterwards
+        a random `fraction` of all cells plus all currently occupied cells (re-checking what we
+        march through most).
         """
         n = self.resolution**3
         dev = self.opacity.device
@@ -163,9 +196,7 @@ class OccupancyGrid(nn.Module):
         sigma = torch.cat([density_fn(c) for c in x.split(chunk)])
         alpha = -torch.expm1(-sigma.float().clamp_min(0.0) * step)
         self.opacity[cells] = torch.maximum(self.opacity[cells] * decay, alpha)
-        if warmup:
-            self.occupied.fill_(True)
-        else:
+        if not warmup:
             thr = min(threshold, self.opacity.mean().item())
             self.occupied.copy_(self.opacity > thr)
 
@@ -182,14 +213,19 @@ class OccupancyGrid(nn.Module):
         step: float,
         cone_angle: float = 0.0,
         u: Tensor | None = None,
+        max_samples: int = 0,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """March rays (R,) from t_min to t_max and keep the intervals whose midpoint, mapped by
-        `to_unit` (world (N, 3) -> unit cube), is in an occupied cell.
+        `to_unit` (world (N, 3) -> unit cube), is in an occupied cell; with max_samples > 0 only
+        the first max_samples of them per ray (front to back: what lies behind is left to the
+        background, as Instant-NGP's fixed maximum of marching steps does).
         Returns packed ray_indices (N,), t_starts (N,), t_ends (N,)."""
         ray_indices, starts, ends = march_intervals(t_min, t_max, step, cone_angle, u)
         mids = 0.5 * (starts + ends)
         x = origins[ray_indices] + mids[:, None] * directions[ray_indices]
         keep = self.is_occupied(to_unit(x))
+        ray_indices, starts, ends = ray_indices[keep], starts[keep], ends[keep]
+        keep = first_per_ray(ray_indices, max_samples)
         return ray_indices[keep], starts[keep], ends[keep]
 
     @torch.no_grad()
@@ -204,12 +240,13 @@ class OccupancyGrid(nn.Module):
         step: float,
         cone_angle: float = 0.0,
         u: Tensor | None = None,
+        max_samples: int = 0,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """`sample` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
         numba twin (`march_kernels.march_occupied`, never materialises the dense intervals),
         elsewhere `sample` itself. Same packed (ray_indices, t_starts, t_ends)."""
         if origins.device.type == "cpu":
             return march_occupied(origins, directions, t_min, t_max, self.occupied, self.resolution, aabb,
-                                  unbounded, step, cone_angle, u)
+                                  unbounded, step, cone_angle, u, max_samples)
         return self.sample(origins, directions, t_min, t_max,
-                           lambda x: scene_to_unit_cube(x, aabb, unbounded), step, cone_angle, u)
+                           lambda x: scene_to_unit_cube(x, aabb, unbounded), step, cone_angle, u, max_samples)
