@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from torch.profiler import record_function
 
 from recon.cameras import Cameras
+from recon.cameras.pose_refine import PoseCorrection
 from recon.gaussians import densify
 from recon.gaussians.init import (
     gaussians_from_points,
@@ -30,7 +31,7 @@ from recon.gaussians.optim import make_adam, set_lr
 from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.render import ProjectedSplats, composite_rgb, composite_rgbd, project_splats
 from recon.gaussians.ssim import ssim
-from recon.models.base import MethodSpec, Model, SceneInfo, TrainData, register
+from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,10 @@ class GaussiansConfig:
     prune_world_fraction: float = 0.1  # prune if max scale > this x extent (after a reset)
     max_gaussians: int = 3_000_000  # densification stops growing the count here
     clone_opacity_correction: bool = False  # a clone and its original share the opacity (1 - sqrt(1 - o))
+    pose_refine: bool = False  # learn an SE(3) correction of each training camera's pose
+    lr_pose: float = 0.0005  # lr of the pose corrections (radians and scene units) at pose_refine_start
+    lr_pose_final: float = 0.000005  # pose lr at lr_decay_steps (log-linear decay, as the means)
+    pose_refine_start: int = 100  # first step that moves the poses (the scene takes shape first)
     seed: int = 0  # seeds random init, view order and split sampling
     default_steps: int = 30_000  # steps when `recon train` is given no stopping rule
 
@@ -106,6 +111,13 @@ def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
     """Log-linear decay lr_means -> lr_means_final over lr_decay_steps, times the extent."""
     t = min(max(step / max(config.lr_decay_steps, 1), 0.0), 1.0)
     return extent * math.exp((1 - t) * math.log(config.lr_means) + t * math.log(config.lr_means_final))
+
+
+def pose_lr(config: GaussiansConfig, step: int) -> float:
+    """Log-linear decay lr_pose -> lr_pose_final from pose_refine_start to lr_decay_steps."""
+    span = max(config.lr_decay_steps - config.pose_refine_start, 1)
+    t = min(max((step - config.pose_refine_start) / span, 0.0), 1.0)
+    return math.exp((1 - t) * math.log(config.lr_pose) + t * math.log(config.lr_pose_final))
 
 
 def view_for_step(step: int, n_views: int, seed: int) -> int:
@@ -150,6 +162,8 @@ class GaussianModel(Model):
             start = initial_gaussians(config, scene)
             self._random_init = uses_random_init(config, scene)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in start.items()})
+        # (C, 6) twists of the training cameras, sized at the first step (`_train_camera`)
+        self.pose_correction = PoseCorrection(0) if config.pose_refine else None
         self._reset_training_state()
 
     def _reset_training_state(self) -> None:
@@ -158,6 +172,13 @@ class GaussianModel(Model):
                "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
         self.optimizer = make_adam(self.params, lrs)
         self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
+        self._reset_pose_optimizer()
+
+    def _reset_pose_optimizer(self) -> None:
+        self.pose_optimizer = None
+        if self.pose_correction is not None:
+            group = {"params": [self.pose_correction.twists], "name": "pose"}
+            self.pose_optimizer = torch.optim.Adam([group], lr=self.config.lr_pose, eps=1e-15)
 
     @property
     def num_gaussians(self) -> int:
@@ -174,7 +195,7 @@ class GaussianModel(Model):
         extent = self._prepare_step(data, step)
         view = view_for_step(step, len(data), c.seed)
         with record_function("3dgs.project"):
-            splats = project_splats(self.gaussians(), data.cameras[view],
+            splats = project_splats(self.gaussians(), self._train_camera(data, view, step),
                                     int(self.active_sh_degree), c.near_plane)
         splats.means2d.retain_grad()
         with record_function("3dgs.rasterize"):
@@ -187,12 +208,45 @@ class GaussianModel(Model):
             loss.backward()
         with record_function("3dgs.optimizer"):
             self.optimizer.step()
+            self._pose_step(step)
         with record_function("3dgs.densify"):
             self._densify(splats, step, extent)
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
         return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-10)),
                 "num_gaussians": float(self.num_gaussians)}
+
+    def _train_camera(self, data: TrainData, view: int, step: int) -> Cameras:
+        """Training view `view`'s camera; with pose_refine, corrected by its learnt twist (and
+        differentiable in it) from pose_refine_start on."""
+        if self.pose_correction is None:
+            return data.cameras[view]
+        count = len(self.pose_correction.twists)
+        if count == 0:  # first step: a zero twist per camera, pivots at the scene box's centre
+            self.pose_correction.reset(data.cameras, self._aabb.mean(0))
+            self._reset_pose_optimizer()
+        elif count != len(data):
+            raise ValueError(f"the model holds pose corrections of {count} training cameras "
+                             f"but is trained on {len(data)}")
+        if step < self.config.pose_refine_start:
+            return data.cameras[view]
+        return self.pose_correction(data.cameras, [view])
+
+    def _pose_step(self, step: int) -> None:
+        if self.pose_optimizer is not None and step >= self.config.pose_refine_start:
+            set_lr(self.pose_optimizer, "pose", pose_lr(self.config, step))
+            self.pose_optimizer.step()
+            self.pose_optimizer.zero_grad(set_to_none=True)
+            self.pose_correction.center()
+
+    def train_cameras(self, cameras: Cameras) -> Cameras:
+        """The training cameras (in training order) as the model learnt them: corrected by
+        the pose twists if pose_refine, else unchanged. Other cameras take no correction."""
+        if self.pose_correction is None or len(self.pose_correction.twists) == 0:
+            return cameras
+        with torch.no_grad():
+            return self.pose_correction(cameras.to(self.pose_correction.twists.device),
+                                        list(range(len(cameras))))
 
     def _prepare_step(self, data: TrainData, step: int) -> float:
         """Scene extent (from the training cameras, once), SH degree and means lr for `step`."""
@@ -245,7 +299,8 @@ class GaussianModel(Model):
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
-        """rgb (H, W, 3), depth (H, W) = expected z / acc where acc > 0 (else 0), acc (H, W)."""
+        """rgb (H, W, 3), depth (H, W) = expected z / acc where acc > 0 (else 0), acc (H, W).
+        The camera is used as given: no pose correction (see `train_cameras`)."""
         degree = int(self.active_sh_degree)
         splats = project_splats(self.gaussians(), camera.to(self.params["means"].device), degree,
                                 self.config.near_plane)
@@ -255,11 +310,16 @@ class GaussianModel(Model):
         return {"rgb": out["rgb"], "depth": depth, "acc": acc}
 
     def training_state(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(),
-                "densify": {k: v.clone() for k, v in self.densify_state.items()}}
+        state = {"optimizer": self.optimizer.state_dict(),
+                 "densify": {k: v.clone() for k, v in self.densify_state.items()}}
+        if self.pose_optimizer is not None:
+            state["pose_optimizer"] = self.pose_optimizer.state_dict()
+        return state
 
     def load_training_state(self, state: dict) -> None:
         self.optimizer.load_state_dict(state["optimizer"])
+        if self.pose_optimizer is not None:
+            self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self.densify_state = {k: v.to(self.params["means"].device)
                               for k, v in state["densify"].items()}
 
@@ -271,13 +331,18 @@ class GaussianModel(Model):
             saved = state_dict.get(f"params.{name}")
             if saved is not None and saved.shape != p.shape:
                 self.params[name] = nn.Parameter(p.new_empty(saved.shape))
+        saved = state_dict.get("pose_correction.twists")
+        if self.pose_correction is not None and saved is not None:  # sized at the first step
+            self.pose_correction.resize(len(saved))
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._reset_training_state()
         return result
 
     def stats(self) -> dict[str, float]:
+        """Size, and with pose_refine how far the poses moved (`PoseCorrection.stats`)."""
+        pose = self.pose_correction.stats() if self.pose_correction is not None else {}
         return {"parameters": float(sum(p.numel() for p in self.params.values())),
-                "gaussians": float(self.num_gaussians)}
+                "gaussians": float(self.num_gaussians), **pose}
 
     @torch.no_grad()
     def export_ply(self, path) -> None:
@@ -292,4 +357,7 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
     return GaussianModel(config, scene)
 
 
-SPEC = register(MethodSpec(name="3dgs", config_cls=GaussiansConfig, build=build, presets=PRESETS))
+# one whole image a step at ~350k px/s (fox at 269 x 478: 1,624 steps in 600 s on 2 threads)
+RESOLUTION = ResolutionPolicy(pixels_per_s=350e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600)
+SPEC = register(MethodSpec(name="3dgs", config_cls=GaussiansConfig, build=build, presets=PRESETS,
+                           resolution=RESOLUTION))
