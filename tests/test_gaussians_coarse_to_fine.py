@@ -10,6 +10,8 @@ def test_schedule_worked_example():
     assert [c2f_factor(s, 4, 250) for s in (0, 249, 250, 499, 500, 10_000)] == [4, 4, 2, 2, 1, 1]
     assert [c2f_factor(s, 8, 100) for s in (0, 100, 200, 300)] == [8, 4, 2, 1]
     assert c2f_factor(0, 1, 250) == 1 and c2f_factor(0, 4, 0) == 1
+    assert [c2f_factor(s, 4, 250, short_side=200) for s in (0, 250, 500)] == [2, 2, 1]
+    assert c2f_factor(0, 4, 250, short_side=100) == 1
 
 
 def _gaussian(x: float, requires_grad=False) -> dict:

@@ -140,3 +140,75 @@ def test_registered_with_flat_documented_config():
     assert {f.name for f in dataclasses.fields(GaussiansConfig)} == set(helps)
     for preset in spec.presets.values():
         GaussiansConfig(**preset)
+
+
+def test_fit_schedules_worked_example():
+    from recon.gaussians.model import fit_schedules
+
+    fast = GaussiansConfig(**PRESETS["fast"])
+    fitted = fit_schedules(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}))
+    assert (fitted.lr_decay_steps, fitted.densify_stop, fitted.opacity_reset_interval,
+            fitted.sh_degree_interval) == (1600, 1120, 560, 320)
+    assert fit_schedules(fast) == fast  # schedule_steps 0: as configured
+    long = GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 6000})  # lego-200, 10 min
+    assert fit_schedules(long) == long  # a run longer than the schedules keeps them
+
+
+def test_coarse_to_fine_fits_downscaled_targets_first():
+    scene, data = synthetic_scene(size=256)
+    model = GaussianModel(config(c2f_factor=4, c2f_interval=3), scene)
+    sizes = []
+    for step in range(8):
+        model.train_step(data, step)
+        sizes.append(sorted(data._levels))
+    assert sizes[0] == [4] and sizes[3] == [2, 4] and sizes[7] == [2, 4]  # 1/4, 1/4, 1/4, 1/2, ..., full
+    assert data.downsampled(4).images.shape[1:3] == (64, 64)
+    out = model.render(data.cameras[0])  # renders at whatever size it is asked
+    assert out["rgb"].shape == (256, 256, 3)
+
+
+def test_appearance_learns_per_image_exposure_and_leaves_held_out_renders_alone():
+    """Training images whose exposure alternates by +-15 %: with appearance on, the corrections
+    take the difference (the train fit is better than without), and `render` - what held-out
+    views get - is the uncorrected scene; the corrections survive a save/load."""
+    scene, data = synthetic_scene()
+    gains = torch.tensor([1.15 if i % 2 else 0.85 for i in range(len(data))])
+    exposed = TrainData((data.images * gains[:, None, None, None]).clamp(0, 1), data.cameras)
+    fits = {}
+    for mode in ("off", "on"):
+        torch.manual_seed(0)
+        model = GaussianModel(config(appearance=mode, lr_appearance=0.005), scene)
+        for step in range(200):
+            stats = model.train_step(exposed, step)
+        fits[mode] = model
+    on = fits["on"]
+    corr = on.stats()
+    assert corr["appearance_max_gain_dev"] > 0.05 and "appearance_max_gain_dev" not in fits["off"].stats()
+    with torch.no_grad():
+        err = {m: float(((fits[m].appearance(fits[m].render(exposed.cameras[i])["rgb"], i)
+                          if fits[m].appearance is not None else fits[m].render(exposed.cameras[i])["rgb"])
+                         - exposed.images[i]).abs().mean()) for m in fits for i in (0,)}
+    assert err["on"] < err["off"]
+    assert stats["loss"] > 0
+    buffer = io.BytesIO()
+    torch.save({"model": on.state_dict(), "training": on.training_state()}, buffer)
+    buffer.seek(0)
+    saved = torch.load(buffer, weights_only=True)
+    again = GaussianModel(config(appearance="on", lr_appearance=0.005), scene)
+    again.load_state_dict(saved["model"])
+    again.load_training_state(saved["training"])
+    assert torch.equal(again.appearance.deltas, on.appearance.deltas)
+    assert torch.equal(again.render(data.cameras[1])["rgb"], on.render(data.cameras[1])["rgb"])
+
+
+def test_appearance_auto_follows_the_kind_of_scene():
+    from recon.gaussians.model import uses_appearance
+
+    scene, _ = synthetic_scene()
+    cfg = config(appearance="auto")
+    assert not uses_appearance(cfg, scene)
+    assert uses_appearance(cfg, SceneInfo(scene.aabb, True, scene.background, 0.1, 6.0))
+    import pytest
+
+    with pytest.raises(ValueError, match="on, off or auto"):
+        uses_appearance(config(appearance="yes"), scene)

@@ -18,11 +18,19 @@ an L1 loss, so a coarse level can read somewhat higher. The coarse levels are sh
 from __future__ import annotations
 
 
-def c2f_factor(step: int, start_factor: int, interval: int) -> int:
+MIN_SIDE = 64  # a coarse level keeps at least this many pixels on the image's shorter side
+
+
+def c2f_factor(step: int, start_factor: int, interval: int, short_side: int = 1 << 30) -> int:
     """The downscale of the training targets at `step`: `start_factor` for the first `interval`
     steps, halved after every further `interval` steps, and 1 once it gets there (1 when
-    `start_factor` <= 1 or `interval` <= 0: no coarse-to-fine).
-    Example: start 4, interval 250 -> steps 0-249 at 1/4, 250-499 at 1/2, 500 on at full size."""
+    `start_factor` <= 1 or `interval` <= 0: no coarse-to-fine). Never so coarse that an image's
+    `short_side` falls below `MIN_SIDE` pixels (small working images skip the coarsest levels).
+    Example: start 4, interval 250 -> steps 0-249 at 1/4, 250-499 at 1/2, 500 on at full size;
+    with a 200 px shorter side, steps 0-249 at 1/2 (1/4 would leave 50 px)."""
     if start_factor <= 1 or interval <= 0:
         return 1
-    return max(1, start_factor >> (step // interval))
+    factor = max(1, start_factor >> (step // interval))
+    while factor > 1 and short_side // factor < MIN_SIDE:
+        factor //= 2
+    return factor

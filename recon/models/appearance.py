@@ -35,12 +35,20 @@ def centred_corrections(deltas: Tensor) -> Tensor:
 
 
 class AppearanceCorrection(nn.Module):
-    """The learnt corrections of C training images, with their own Adam (lr `lr`)."""
+    """The learnt corrections of C training images, with their own Adam (lr `lr`). A model that
+    learns the number of its training images only at the first step starts with C = 0 and
+    calls `reset`."""
 
     def __init__(self, num_images: int, lr: float):
         super().__init__()
-        self.deltas = nn.Parameter(torch.zeros(num_images, 3, 4))
-        self.optimizer = torch.optim.Adam([self.deltas], lr=lr, eps=1e-15)
+        self.lr = lr
+        self.reset(num_images)
+
+    def reset(self, num_images: int) -> None:
+        """Identity corrections for `num_images` images and a fresh optimizer."""
+        device = self.deltas.device if hasattr(self, "deltas") else None
+        self.deltas = nn.Parameter(torch.zeros(num_images, 3, 4, device=device))
+        self.optimizer = torch.optim.Adam([self.deltas], lr=self.lr, eps=1e-15)
 
     def forward(self, rgb: Tensor, image: int) -> Tensor:
         """The rendered rgb (..., 3) of training image `image`, corrected."""
