@@ -16,9 +16,14 @@ from recon.cameras.pose_refine import (
     pivot_corrections,
     pivot_depths,
 )
-from recon.cameras.se3 import se3_exp
-from recon.gaussians.model import GaussianModel
+from recon.cameras.se3 import se3_exp, se3_log, so3_exp
+from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgbd, project_splats
+from recon.metrics.pose import rotation_angle_deg
+from recon.models.base import TrainData
+from recon.workspace import Workspace
+from recon.workspace.scene import load_scene, load_train_data
+from tests.conftest import SAMPLE_DATA, recon_cli
 from tests.test_gaussians_model import config, ring, synthetic_scene
 
 F64 = torch.float64
@@ -70,18 +75,48 @@ def test_correction_gradcheck_float64():
     assert torch.autograd.gradcheck(lambda t: correct_cam_from_world(cfw, t, pivots), (twists,))
 
 
-def test_pivot_depths_and_centering():
+def test_pivot_depths():
     cfw = torch.eye(4, dtype=F64).repeat(2, 1, 1)
     cfw[1, 2, 3] = -5.0  # the second camera has the centre behind it
     cams = Cameras(torch.eye(3).repeat(2, 1, 1), cfw, torch.tensor([4, 4]), torch.tensor([4, 4]))
     assert torch.equal(pivot_depths(cams, torch.tensor([0.0, 0.0, 3.0])),
                        torch.tensor([3.0, 0.0], dtype=F64))
+
+
+def ring_module(n=12, seed=0):
+    """A PoseCorrection for a ring of cameras around the origin, random pivots."""
+    cams = ring(n=n, size=24)
     module = PoseCorrection(0)
-    module.reset(cams, torch.tensor([0.0, 0.0, 3.0]))
+    module.reset(cams.to(dtype=F64), torch.zeros(3))
+    gen = torch.Generator().manual_seed(seed)
+    module.pivots = module.pivots * (0.5 + torch.rand(n, generator=gen))
+    module.set_gauge(cams.to(dtype=F64))
+    return cams, module
+
+
+def test_remove_gauge_drops_world_motions_and_shared_twists_only():
+    cams, module = ring_module()
+    gen = torch.Generator().manual_seed(3)
+    eta = 1e-3 * torch.randn(6, generator=gen, dtype=F64)
+    # every camera moved by one rigid motion of the world: cam_from_world M
+    moved = cams.cam_from_world.double() @ se3_exp(eta)
+    D = moved @ invert_rigid(cams.cam_from_world.double())  # the left corrections that do it
+    P = torch.eye(4, dtype=F64).repeat(12, 1, 1)
+    P[:, 2, 3] = -module.pivots.double()
+    world_twists = se3_log(P @ D @ invert_rigid(P))
+    shared = 1e-3 * torch.randn(6, generator=gen, dtype=F64).expand(12, 6)
+    own = torch.zeros(12, 6, dtype=F64)
+    own[5] = 1e-2 * torch.randn(6, generator=gen, dtype=F64)  # one camera's own correction
     with torch.no_grad():
-        module.twists += torch.tensor([[1.0, 2, 3, 4, 5, 6], [3, 2, 1, 0, -1, -2]])
-    module.center()
-    assert torch.equal(module.twists.detach(), torch.tensor([[-1.0, 0, 1, 2, 3, 4], [1, 0, -1, -2, -3, -4]]))
+        module.twists.copy_((world_twists + shared + own).float())
+    module.remove_gauge()
+    left = module.twists.detach().double()
+    # what is left is the single camera's correction minus its own small gauge share
+    assert torch.allclose(left, own - own.reshape(-1).matmul(module.gauge).matmul(module.gauge.T)
+                          .reshape(12, 6), atol=1e-7)
+    assert (left[5] - own[5]).norm() < 0.35 * own[5].norm()
+    module.remove_gauge()  # a projection: idempotent
+    assert torch.allclose(module.twists.detach().double(), left, atol=1e-9)
 
 
 def test_off_or_not_yet_started_changes_nothing():
@@ -106,7 +141,7 @@ def test_training_moves_the_poses_but_never_the_held_out_cameras():
     for step in range(20):
         model.train_step(data, step)
     twists = model.pose_correction.twists.detach()
-    assert twists.abs().max() > 1e-4 and torch.allclose(twists.mean(0), torch.zeros(6), atol=1e-7)
+    assert twists.abs().max() > 1e-4 and torch.allclose(twists.mean(0), torch.zeros(6), atol=1e-6)
     stats = model.stats()
     assert 0 < stats["pose_rot_deg_mean"] <= stats["pose_rot_deg_max"] < 5
     assert 0 < stats["pose_shift_mean"] <= stats["pose_shift_max"] < 0.5
@@ -145,3 +180,52 @@ def test_resume_with_pose_refinement_is_exact():
     assert straight.pose_correction.twists.any()
     assert torch.equal(straight.pose_correction.twists, resumed.pose_correction.twists)
     assert torch.equal(straight.pose_correction.pivots, resumed.pose_correction.pivots)
+
+
+def test_a_perturbed_training_camera_is_pulled_back(tmp_path, one_thread):
+    """sample_data at 100 x 100 px, 35 training views; view r_033 turned by 1 deg about a random
+    axis through its centre and its centre moved by 2 % of the scene box's diagonal. 800 steps
+    of the "fast" preset with pose_refine (default lr and start) bring both errors down >= 5x
+    (measured 6.3x and 10.1x, 30-50 s at one thread on a shared machine) while the 34 exact
+    cameras end 0.16 deg and 0.0032 off on average.
+
+    The margin is thin and depends on the view: r_023 reaches 5.3x / 8.8x in the same run, and
+    at this length the residual still wanders by about +-0.1 deg from step to step (the pose lr
+    decays from step 2,500 on here). What limits it is the number of updates each camera gets,
+    one per pass over the views: alone against a frozen scene trained with its wrong pose,
+    r_023 needs ~125 Adam steps to come within 0.04 deg; the gradient itself matches finite
+    differences and the torch twin."""
+    ws = tmp_path / "ws"
+    recon_cli("sfm", "--from-transforms", str(SAMPLE_DATA), "-w", str(ws), "--downscale", "2")
+    scene = load_scene(Workspace(ws))
+    data = load_train_data(Workspace(ws), scene, "train")
+    view = [scene.frames[i]["name"] for i in scene.split("train")].index("r_033")
+    true = data.cameras.cam_from_world.double()
+    gen = torch.Generator().manual_seed(1)
+    axis, direction = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen, dtype=F64), dim=1)
+    shift = 0.02 * float((scene.info.aabb[1] - scene.info.aabb[0]).norm())
+    world_from_cam = invert_rigid(true[view])
+    world_from_cam[:3, :3] = so3_exp(math.radians(1.0) * axis) @ world_from_cam[:3, :3]
+    world_from_cam[:3, 3] += shift * direction
+    cfw = data.cameras.cam_from_world.clone()
+    cfw[view] = invert_rigid(world_from_cam).float()
+    data = TrainData(data.images, Cameras(data.cameras.K, cfw, data.cameras.width, data.cameras.height))
+
+    config = GaussiansConfig(**{**PRESETS["fast"], "pose_refine": True, "max_gaussians": 12_000})
+    model = GaussianModel(config, scene.info)
+    for step in range(800):
+        model.train_step(data, step)
+
+    def errors(cam_from_world):
+        rot = rotation_angle_deg((cam_from_world[:, :3, :3] @ true[:, :3, :3].transpose(1, 2)).numpy())
+        centres = invert_rigid(cam_from_world)[:, :3, 3] - invert_rigid(true)[:, :3, 3]
+        return torch.from_numpy(rot), centres.norm(dim=-1)
+
+    rot_before, shift_before = errors(cfw.double())
+    rot_after, shift_after = errors(model.train_cameras(data.cameras).cam_from_world.double())
+    assert math.isclose(float(rot_before[view]), 1.0, rel_tol=1e-4)
+    assert math.isclose(float(shift_before[view]), shift, rel_tol=1e-4)
+    assert rot_after[view] <= rot_before[view] / 5, float(rot_after[view])
+    assert shift_after[view] <= shift_before[view] / 5, float(shift_after[view])
+    others = torch.arange(len(data)) != view  # the exact cameras stay inside the 5x bounds
+    assert rot_after[others].mean() < 0.25 and shift_after[others].mean() < 0.2 * shift

@@ -7,7 +7,15 @@ import mpmath
 import pytest
 import torch
 
-from recon.cameras.se3 import rodrigues_coefficients, se3_exp, se3_log, skew, so3_exp, so3_log
+from recon.cameras.se3 import (
+    rodrigues_coefficients,
+    se3_adjoint,
+    se3_exp,
+    se3_log,
+    skew,
+    so3_exp,
+    so3_log,
+)
 
 F64 = torch.float64
 
@@ -127,3 +135,13 @@ def test_exp_gradcheck_float64():
     small = torch.cat([torch.randn(3, 3, dtype=F64), 1e-7 * torch.randn(3, 3, dtype=F64)], -1)
     assert torch.autograd.gradcheck(se3_exp, (small.requires_grad_(),), eps=1e-6, atol=1e-8)
     assert torch.autograd.gradgradcheck(se3_exp, (xi,), eps=1e-6, atol=1e-6)
+
+
+def test_adjoint_moves_a_twist_between_frames():
+    """T exp(xi) T^-1 = exp(Ad_T xi), and Ad of a product is the product of the Ads."""
+    T, U = random_twists(8, seed=4)[6:].unbind(0)
+    T, U = se3_exp(T), se3_exp(U)
+    xi = random_twists(5, seed=5)
+    lhs = T @ se3_exp(xi) @ torch.linalg.inv(T)
+    assert torch.allclose(lhs, se3_exp(xi @ se3_adjoint(T).T), atol=1e-12)
+    assert torch.allclose(se3_adjoint(T @ U), se3_adjoint(T) @ se3_adjoint(U), atol=1e-12)

@@ -6,7 +6,7 @@ applied on the camera side, about a pivot on the optical axis:
 
 i.e. the left perturbation D_i = [R, t + d_i (I - R) e_z] with [R, t] = exp(xi_i), in the frame
 the image is formed in: rho_i moves the camera along its own axes, phi_i turns it about the
-point at depth d_i in front of it, and the camera centre moves by |D_i t| = |t + d_i (I - R) e_z|.
+point at depth d_i in front of it, and the camera centre moves by |t + d_i (I - R) e_z|.
 
 Why the camera side: a correction on the world side, cam_from_world exp(xi), would turn the
 camera about the world origin, so its meaning would depend on where the origin happens to be.
@@ -19,14 +19,15 @@ coordinates. (Measured on sample_data, frozen scene, one camera off by 1 deg and
 scene, Adam at lr 1e-3: 50 steps to 0.22 deg / 0.0033 about the pivot, 150 steps to 0.29 deg /
 0.0047 about the optical centre.)
 
-The twists are kept at zero mean, sum_i xi_i = 0 (`PoseCorrection.center`): a correction that
-every camera shares in its own frame cannot be told apart from a change of the scene itself (a
-common yaw about an orbit's centre is a rotation of the world, a common step forward a change
-of scale, a common pitch about the pivots trades against squashing an orbit's scene in height),
-so the photometric loss does not hold it, and it would only carry the scene away from the
-cameras that are not corrected (held-out views). On sample_data, 35 views, one off by 1 deg:
-without the constraint the other cameras drifted 0.34 deg on average in 600 steps (a common
-pitch of 0.27 deg), with it 0.16 deg. C = cameras.
+After each step the twists lose their component along 12 modes the photometric loss cannot
+hold (`gauge_basis`, `PoseCorrection.remove_gauge`): one rigid motion of the world applied to
+every camera (the scene can follow it exactly), and the 6 twists all cameras share in their own
+frames (a common step forward trades against the scene's scale, a common pitch about the pivots
+of an orbit against squashing the scene in height). Left free, these drift and carry the scene
+away from the cameras that are not corrected (held-out views). On sample_data (35 views, one off
+by 1 deg, 800 steps) the common rotation of the other cameras was 0.13-0.15 deg with only the
+shared twists removed and 0.02-0.03 deg with both; in a variant with neither (lr 1e-3) the other
+cameras had drifted 0.29 deg on average by step 500, 0.27 deg of it a common pitch. C = cameras.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import torch
 from torch import Tensor, nn
 
 from recon.cameras.cameras import Cameras
-from recon.cameras.se3 import se3_exp
+from recon.cameras.se3 import se3_adjoint, se3_exp
 
 
 def pivot_corrections(twists: Tensor, pivots: Tensor) -> Tensor:
@@ -70,6 +71,21 @@ def pivot_depths(cameras: Cameras, center: Tensor) -> Tensor:
     return z.clamp_min(0.0)
 
 
+def gauge_basis(cam_from_world: Tensor, pivots: Tensor) -> Tensor:
+    """Orthonormal basis (6C, r), r <= 12, of the corrections the photometric loss cannot hold
+    (flattened (C, 6) twists): the 6 twists every camera shares in its own frame, and the 6
+    rigid motions M of the world, cam_from_world_i M, i.e. xi_i = Ad(P_i cam_from_world_i) eta
+    (`se3_adjoint`). (C, 4, 4), (C,) -> (6C, r) float64; r < 12 where the two overlap (the yaw
+    of a ring of cameras about its axis is both)."""
+    C = len(cam_from_world)
+    P = torch.eye(4, dtype=torch.float64).repeat(C, 1, 1)
+    P[:, 2, 3] = -pivots.double().cpu()
+    shared = torch.eye(6, dtype=torch.float64).repeat(C, 1)  # (6C, 6)
+    world = se3_adjoint(P @ cam_from_world.double().cpu()).reshape(6 * C, 6)
+    U, S, _ = torch.linalg.svd(torch.cat([shared, world], 1), full_matrices=False)
+    return U[:, S > 1e-9 * S[0]]
+
+
 def correction_sizes(twists: Tensor, pivots: Tensor) -> tuple[Tensor, Tensor]:
     """How far each correction moves its camera: rotation angle |phi| in degrees and the
     distance its centre moves, |t of D| (= |o' - o|), in scene units.  -> (C,), (C,)."""
@@ -86,12 +102,19 @@ class PoseCorrection(nn.Module):
         super().__init__()
         self.twists = nn.Parameter(torch.zeros(num_cameras, 6))
         self.register_buffer("pivots", torch.zeros(num_cameras))
+        self.gauge = None  # (6C, r), set with the cameras (`set_gauge`)
 
     def reset(self, cameras: Cameras, center: Tensor) -> None:
         """Zero twists for `cameras`, pivots at the depth of `center` (3,) in each."""
         device = self.twists.device
         self.twists = nn.Parameter(torch.zeros(len(cameras), 6, device=device))
         self.pivots = pivot_depths(cameras, center).to(device=device, dtype=self.pivots.dtype)
+        self.set_gauge(cameras)
+
+    def set_gauge(self, cameras: Cameras) -> None:
+        """The modes `remove_gauge` projects out, for the training `cameras` (not saved: a
+        function of the cameras and the pivots)."""
+        self.gauge = gauge_basis(cameras.cam_from_world, self.pivots)
 
     def resize(self, num_cameras: int) -> None:
         """Empty tensors for `num_cameras` cameras, to load a saved state into."""
@@ -99,9 +122,11 @@ class PoseCorrection(nn.Module):
         self.pivots = self.pivots.new_empty(num_cameras)
 
     @torch.no_grad()
-    def center(self) -> None:
-        """Project the twists onto sum_i xi_i = 0 (call after each optimizer step)."""
-        self.twists -= self.twists.mean(0)
+    def remove_gauge(self) -> None:
+        """Project the twists onto the complement of `gauge_basis` (after each optimizer step)."""
+        x = self.twists.detach().double().cpu().reshape(-1)
+        x = x - self.gauge @ (self.gauge.T @ x)
+        self.twists.copy_(x.reshape(self.twists.shape))
 
     def forward(self, cameras: Cameras, indices: Tensor | list[int]) -> Cameras:
         """The cameras `indices` of the training set `cameras`, corrected."""

@@ -89,6 +89,16 @@ def se3_exp(xi: Tensor) -> Tensor:
     return torch.cat([torch.cat([R, t[..., None]], -1), bottom], -2)
 
 
+def se3_adjoint(T: Tensor) -> Tensor:
+    """Ad_T = [[R, [t]x R], [0, R]] for rigid (..., 4, 4) -> (..., 6, 6), twists ordered
+    (rho, phi): T exp(xi) T^-1 = exp(Ad_T xi) (Barfoot 2017, Sec. 7.1.4, eq. 7.45; Sola et al.
+    2018, eq. 174)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    top = torch.cat([R, skew(t) @ R], -1)
+    bottom = torch.cat([torch.zeros_like(R), R], -1)
+    return torch.cat([top, bottom], -2)
+
+
 def so3_log(R: Tensor) -> Tensor:
     """The rotation vector phi with exp(phi) = R, |phi| in [0, pi].  (..., 3, 3) -> (..., 3).
 
