@@ -32,7 +32,7 @@ def test_learns_an_exposure_difference():
     the corrections take the exposure difference and the scene the mean."""
     torch.manual_seed(0)
     scene = torch.nn.Parameter(torch.full((3,), 0.2))
-    app = AppearanceCorrection(2, lr=1e-2)
+    app = AppearanceCorrection(2, lr=1e-2)  # (no camera anchors needed for training images)
     opt = torch.optim.Adam([scene], lr=1e-2)
     targets = [torch.full((3,), 0.5), torch.full((3,), 0.4)]
     for step in range(1500):
@@ -45,3 +45,20 @@ def test_learns_an_exposure_difference():
         assert app(scene, 0).tolist() == pytest.approx([0.5] * 3, abs=2e-3)
         assert app(scene, 1).tolist() == pytest.approx([0.4] * 3, abs=2e-3)
         assert app.spread()["appearance_max_gain_dev"] > 0.01
+
+
+def test_neighbour_correction_worked_example():
+    from recon.models.appearance import neighbour_correction
+
+    corr = torch.stack([1.2 * torch.eye(3, 4), 0.8 * torch.eye(3, 4), 5 * torch.eye(3, 4)])
+    centers = torch.tensor([[1.0, 0, 0], [-3.0, 0, 0], [9.0, 0, 0]])
+    directions = torch.tensor([[0.0, 0, 1]]).repeat(3, 1)
+    out = neighbour_correction(corr, centers, directions, torch.zeros(3), torch.tensor([0.0, 0, 1]), k=2)
+    assert out[0, 0].item() == pytest.approx(1.1)  # weights 3/4 and 1/4
+    own = neighbour_correction(corr, centers, directions, centers[2], directions[2])
+    assert torch.equal(own, corr[2])  # a training camera keeps its own correction
+    # camera 0 is nearer (1 against 1.5) but looks the other way: d = 1 + 0.5 * 2 = 2 > 1.5
+    turned = neighbour_correction(corr, torch.tensor([[1.0, 0, 0], [-1.5, 0, 0], [9.0, 0, 0]]),
+                                  torch.tensor([[0.0, 0, -1], [0, 0, 1], [0, 0, 1]]),
+                                  torch.zeros(3), torch.tensor([0.0, 0, 1]), k=1)
+    assert torch.equal(turned, corr[1])

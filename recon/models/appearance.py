@@ -11,15 +11,26 @@ colour of training image i is corrected before the loss:
 
 with D_i (3, 4) learnt and zero at the start. Subtracting the mean deviation fixes the gauge:
 the scene could otherwise drift in colour while every correction drifts the opposite way, and
-the mean correction over the training images is the identity by construction. Held-out views
-have no fitted correction - nothing is ever fitted to a test image - and are rendered with the
-identity, which is therefore exactly the mean correction of the training images.
+the mean correction over the training images is the identity by construction.
+
+A view that is not a training image (a held-out photo, a camera path) has no correction of its
+own, and nothing is ever fitted to a test image. It takes the inverse-distance-weighted mean of
+the corrections of the `NEIGHBOURS` training cameras closest to it (camera centre distance plus
+half the angle gap of the viewing directions, `neighbour_correction`): a phone's auto-exposure
+follows what the camera looks at, so nearby training photos predict it. (On the fox capture,
+held-out PSNR at 1/4 size after 1,600 steps: 30.69 dB without appearance, 27.25 with it and the
+identity for held-out views, 30.94 with neighbour corrections.)
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
+
+from recon.cameras import Cameras
+
+NEIGHBOURS = 3  # training cameras whose corrections a novel view borrows
+DIRECTION_WEIGHT = 0.5  # scene units per unit of (1 - cos) between viewing directions
 
 
 def affine_colour(rgb: Tensor, correction: Tensor) -> Tensor:
@@ -34,25 +45,60 @@ def centred_corrections(deltas: Tensor) -> Tensor:
     return identity + deltas - deltas.mean(0, keepdim=True)
 
 
+def neighbour_correction(corrections: Tensor, centers: Tensor, directions: Tensor, center: Tensor,
+                         direction: Tensor, k: int = NEIGHBOURS) -> Tensor:
+    """The correction (3, 4) of a view at `center` (3,) looking along unit `direction` (3,):
+    sum_i w_i [A_i | b_i] over the k training cameras nearest in d_i = |o_i - o| +
+    DIRECTION_WEIGHT (1 - v_i . v), with w_i proportional to 1 / d_i (a training camera itself,
+    d = 0, gets its own correction). corrections (C, 3, 4), centers, directions (C, 3).
+    Example: two cameras at distances 1 and 3 with gains 1.2 and 0.8 (k = 2) -> weights 3/4 and
+    1/4, gain 1.1."""
+    d = (centers - center).norm(dim=-1) + DIRECTION_WEIGHT * (1 - directions @ direction)
+    d, idx = torch.topk(d, min(k, len(d)), largest=False)
+    if d[0] <= 1e-9:
+        return corrections[idx[0]]
+    w = 1 / d
+    return (w[:, None, None] * corrections[idx]).sum(0) / w.sum()
+
+
 class AppearanceCorrection(nn.Module):
-    """The learnt corrections of C training images, with their own Adam (lr `lr`). A model that
-    learns the number of its training images only at the first step starts with C = 0 and
-    calls `reset`."""
+    """The learnt corrections of C training images, with their own Adam (lr `lr`), and where
+    those cameras are (for views that are not training images). A model that meets its training
+    cameras only at the first step starts with C = 0 and calls `reset`."""
 
     def __init__(self, num_images: int, lr: float):
         super().__init__()
         self.lr = lr
-        self.reset(num_images)
+        self.resize(num_images)
 
-    def reset(self, num_images: int) -> None:
-        """Identity corrections for `num_images` images and a fresh optimizer."""
+    def resize(self, num_images: int) -> None:
+        """Identity corrections (and blank camera anchors) for `num_images` images, and a fresh
+        optimizer: the shapes a saved state is loaded into."""
         device = self.deltas.device if hasattr(self, "deltas") else None
         self.deltas = nn.Parameter(torch.zeros(num_images, 3, 4, device=device))
+        self.register_buffer("centers", torch.zeros(num_images, 3, device=device))
+        self.register_buffer("directions", torch.zeros(num_images, 3, device=device))
         self.optimizer = torch.optim.Adam([self.deltas], lr=self.lr, eps=1e-15)
+
+    def reset(self, cameras: Cameras) -> None:
+        """Identity corrections for the training cameras, anchored at their centres and viewing
+        directions (the optical axes)."""
+        self.resize(len(cameras))
+        world_from_cam = cameras.world_from_cam.to(self.deltas.device)
+        self.centers.copy_(world_from_cam[:, :3, 3])
+        self.directions.copy_(world_from_cam[:, :3, 2])
 
     def forward(self, rgb: Tensor, image: int) -> Tensor:
         """The rendered rgb (..., 3) of training image `image`, corrected."""
         return affine_colour(rgb, centred_corrections(self.deltas)[image])
+
+    @torch.no_grad()
+    def for_camera(self, rgb: Tensor, camera: Cameras) -> Tensor:
+        """The rendered rgb (..., 3) of any single camera, corrected by `neighbour_correction`."""
+        world_from_cam = camera.world_from_cam[0].to(self.deltas)
+        corr = neighbour_correction(centred_corrections(self.deltas), self.centers, self.directions,
+                                    world_from_cam[:3, 3], world_from_cam[:3, 2])
+        return affine_colour(rgb, corr)
 
     @torch.no_grad()
     def spread(self) -> dict[str, float]:
