@@ -5,6 +5,7 @@ exact resume, and on sample_data a perturbed training camera is pulled back to i
 import io
 import math
 
+import pytest
 import torch
 
 from recon.cameras import Cameras
@@ -133,6 +134,14 @@ def test_off_or_not_yet_started_changes_nothing():
     assert "pose_optimizer" not in off.training_state()
     assert not {"pose_rot_deg_max", "pose_shift_max"} & set(off.stats())
     assert idle.pose_correction.twists.shape == (len(data), 6) and not idle.pose_correction.twists.any()
+
+
+def test_bad_pose_options_are_refused():
+    scene, _ = synthetic_scene(size=24)
+    for bad in ({"lr_pose": 0.0}, {"lr_pose_final": -1e-6}, {"pose_refine_start": -1}):
+        with pytest.raises(ValueError, match="pose_refine needs"):
+            GaussianModel(config(pose_refine=True, **bad), scene)
+    GaussianModel(config(lr_pose=0.0), scene)  # ignored while pose_refine is off
 
 
 def test_training_moves_the_poses_but_never_the_held_out_cameras():

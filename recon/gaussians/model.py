@@ -215,6 +215,10 @@ class GaussianModel(Model):
             start = initial_gaussians(config, scene)
             self._random_init = uses_random_init(config, scene)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in start.items()})
+        if config.pose_refine and not (config.lr_pose > 0 and config.lr_pose_final > 0
+                                       and config.pose_refine_start >= 0):
+            raise ValueError("pose_refine needs lr_pose > 0, lr_pose_final > 0 and "
+                             "pose_refine_start >= 0")
         # (C, 6) twists of the training cameras, sized at the first step (`_train_camera`)
         self.pose_correction = PoseCorrection(0) if config.pose_refine else None
         # (C, 3, 4) colour corrections of the training images, sized at the first step too
@@ -258,7 +262,7 @@ class GaussianModel(Model):
         splats.means2d.retain_grad()
         with record_function("3dgs.rasterize"):
             rgb, _ = composite_rgb(splats, self.background)
-        rgb = self._corrected(rgb, view, data.cameras)
+        rgb = self._corrected(rgb, view, len(data))
         target = level.images[view]
         with record_function("3dgs.loss"):
             loss = photometric_loss(rgb, target, c.ssim_weight)
@@ -294,16 +298,16 @@ class GaussianModel(Model):
             return data.cameras[view]
         return self.pose_correction(data.cameras, [view])
 
-    def _corrected(self, rgb: Tensor, view: int, cameras: Cameras) -> Tensor:
-        """The render of training view `view` (of the training `cameras`) after its learnt colour
-        correction (appearance on); `render` corrects other views by their neighbours'."""
+    def _corrected(self, rgb: Tensor, view: int, num_views: int) -> Tensor:
+        """The render of training view `view` after its learnt colour correction (appearance
+        on); held-out views, rendered by `render`, are never corrected (see `models.appearance`)."""
         if self.appearance is None:
             return rgb
         if len(self.appearance.deltas) == 0:  # first step: an identity per training image
-            self.appearance.reset(cameras)
-        elif len(self.appearance.deltas) != len(cameras):
+            self.appearance.reset(num_views)
+        elif len(self.appearance.deltas) != num_views:
             raise ValueError(f"the model holds colour corrections of {len(self.appearance.deltas)} "
-                             f"training images but is trained on {len(cameras)}")
+                             f"training images but is trained on {num_views}")
         return self.appearance(rgb, view)
 
     def _appearance_step(self) -> None:
@@ -379,18 +383,14 @@ class GaussianModel(Model):
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         """rgb (H, W, 3), depth (H, W) = expected z / acc where acc > 0 (else 0), acc (H, W).
-        The camera is used as given: no pose correction (see `train_cameras`). With appearance,
-        rgb takes the colour correction of the nearest training photos (`models.appearance`)."""
+        The camera is used as given: no pose correction (see `train_cameras`)."""
         degree = int(self.active_sh_degree)
         splats = project_splats(self.gaussians(), camera.to(self.params["means"].device), degree,
                                 self.config.near_plane)
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
         depth = torch.where(acc > 0, out["depth"] / acc.clamp_min(1e-10), torch.zeros_like(acc))
-        rgb = out["rgb"]
-        if self.appearance is not None and len(self.appearance.deltas):
-            rgb = self.appearance.for_camera(rgb, camera)  # nearest training photos' exposure
-        return {"rgb": rgb, "depth": depth, "acc": acc}
+        return {"rgb": out["rgb"], "depth": depth, "acc": acc}
 
     def training_state(self) -> dict:
         state = {"optimizer": self.optimizer.state_dict(),
@@ -423,7 +423,7 @@ class GaussianModel(Model):
             self.pose_correction.resize(len(saved))
         saved = state_dict.get("appearance.deltas")
         if self.appearance is not None and saved is not None:
-            self.appearance.resize(len(saved))
+            self.appearance.reset(len(saved))
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._reset_training_state()
         return result
