@@ -262,7 +262,7 @@ class GaussianModel(Model):
         splats.means2d.retain_grad()
         with record_function("3dgs.rasterize"):
             rgb, _ = composite_rgb(splats, self.background)
-        rgb = self._corrected(rgb, view, len(data))
+        rgb = self._corrected(rgb, view, data.cameras)
         target = level.images[view]
         with record_function("3dgs.loss"):
             loss = photometric_loss(rgb, target, c.ssim_weight)
@@ -298,16 +298,16 @@ class GaussianModel(Model):
             return data.cameras[view]
         return self.pose_correction(data.cameras, [view])
 
-    def _corrected(self, rgb: Tensor, view: int, num_views: int) -> Tensor:
-        """The render of training view `view` after its learnt colour correction (appearance
-        on); held-out views, rendered by `render`, are never corrected (see `models.appearance`)."""
+    def _corrected(self, rgb: Tensor, view: int, cameras: Cameras) -> Tensor:
+        """The render of training view `view` (of the training `cameras`) after its learnt colour
+        correction (appearance on); `render` corrects other views by their neighbours'."""
         if self.appearance is None:
             return rgb
         if len(self.appearance.deltas) == 0:  # first step: an identity per training image
-            self.appearance.reset(num_views)
-        elif len(self.appearance.deltas) != num_views:
+            self.appearance.reset(cameras)
+        elif len(self.appearance.deltas) != len(cameras):
             raise ValueError(f"the model holds colour corrections of {len(self.appearance.deltas)} "
-                             f"training images but is trained on {num_views}")
+                             f"training images but is trained on {len(cameras)}")
         return self.appearance(rgb, view)
 
     def _appearance_step(self) -> None:
@@ -383,14 +383,18 @@ class GaussianModel(Model):
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         """rgb (H, W, 3), depth (H, W) = expected z / acc where acc > 0 (else 0), acc (H, W).
-        The camera is used as given: no pose correction (see `train_cameras`)."""
+        The camera is used as given: no pose correction (see `train_cameras`). With appearance,
+        rgb takes the colour correction of the nearest training photos (`models.appearance`)."""
         degree = int(self.active_sh_degree)
         splats = project_splats(self.gaussians(), camera.to(self.params["means"].device), degree,
                                 self.config.near_plane)
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
         depth = torch.where(acc > 0, out["depth"] / acc.clamp_min(1e-10), torch.zeros_like(acc))
-        return {"rgb": out["rgb"], "depth": depth, "acc": acc}
+        rgb = out["rgb"]
+        if self.appearance is not None and len(self.appearance.deltas):
+            rgb = self.appearance.for_camera(rgb, camera)  # nearest training photos' exposure
+        return {"rgb": rgb, "depth": depth, "acc": acc}
 
     def training_state(self) -> dict:
         state = {"optimizer": self.optimizer.state_dict(),
@@ -423,7 +427,7 @@ class GaussianModel(Model):
             self.pose_correction.resize(len(saved))
         saved = state_dict.get("appearance.deltas")
         if self.appearance is not None and saved is not None:
-            self.appearance.reset(len(saved))
+            self.appearance.resize(len(saved))
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self._reset_training_state()
         return result
