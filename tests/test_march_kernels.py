@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -5,8 +7,9 @@ from recon.volrend import OccupancyGrid, ray_aabb_intersect, scene_to_unit_cube
 from recon.volrend.march_kernels import march_occupied
 
 
-@pytest.mark.parametrize("unbounded,cone", [(False, 0.0), (True, 1 / 64)])
-def test_numba_march_matches_occupancy_grid_sample(unbounded, cone):
+@pytest.mark.parametrize("unbounded,cone,disparity_from", [(False, 0.0, math.inf), (True, 1 / 64, math.inf),
+                                                           (True, 1 / 64, 3.0)])
+def test_numba_march_matches_occupancy_grid_sample(unbounded, cone, disparity_from):
     g = torch.Generator().manual_seed(0)
     res = 16
     grid = OccupancyGrid(res)
@@ -25,8 +28,9 @@ def test_numba_march_matches_occupancy_grid_sample(unbounded, cone):
     def to_unit(x):
         return scene_to_unit_cube(x, aabb, unbounded)
 
-    ref = grid.sample(origins, dirs, t_min, t_max, to_unit, step, cone, u)
-    fast = march_occupied(origins, dirs, t_min, t_max, grid.occupied, res, aabb, unbounded, step, cone, u)
+    ref = grid.sample(origins, dirs, t_min, t_max, to_unit, step, cone, u, disparity_from=disparity_from)
+    fast = march_occupied(origins, dirs, t_min, t_max, grid.occupied, res, aabb, unbounded, step, cone, u,
+                          disparity_from=disparity_from)
     assert ref[0].numel() > 100
     # the midpoint of an interval on a cell boundary may round either way in float32
     assert abs(ref[0].numel() - fast[0].numel()) <= 0.002 * ref[0].numel() + 2

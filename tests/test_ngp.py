@@ -196,7 +196,17 @@ def test_unbounded_first_step_is_capped_and_seeded_from_points():
     assert 0 < stats["samples_per_ray"] <= 40
     unseeded = NGPModel(cfg, SceneInfo(**{**info.__dict__, "points": None}))
     assert unseeded.occupancy.occupied.all()  # no points: every cell, as before
-    assert unseeded.train_step(data, 0)["samples_per_ray"] == 40  # ~300 steps to t = 100, capped
+    assert unseeded.train_step(data, 0)["samples_per_ray"] == 40  # ~150 steps to t = 100, capped
+    # uncapped, every cell occupied: the whole ray, its far part linear in disparity (~150 steps),
+    # not ~64 ln(100 / 2.3) ~ 240 more cone steps
+    from recon.volrend.occupancy import _warp
+
+    free = NGPModel(NGPConfig(**{**cfg.__dict__, "max_samples_per_ray": 0}), unseeded.scene)
+    t = torch.tensor([info.near, info.far])
+    s = _warp(t, free.step_size, cfg.cone_angle, free.disparity_from)
+    rays = data.rays()
+    n = torch.bincount(free._occupied_samples(rays["origins"], rays["directions"], jitter=False)[0])
+    assert (n == math.ceil(s[1] - s[0])).all() and n[0] < 160
 
 
 def test_learned_background_fills_what_the_volume_leaves_open():
@@ -234,3 +244,44 @@ def test_a_run_saved_without_learned_background_loads_with_the_scene_colour():
     new.load_state_dict(old.state_dict())
     assert new.environment is None
     torch.testing.assert_close(new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"])
+
+
+def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients():
+    """Training renders from one density pass with gradients (termination decided on its values);
+    the twin evaluates the density without gradients first and the field again on the survivors."""
+    from recon.volrend import terminated_mask, volume_render
+
+    data, info = unbounded_sphere_scene(n_cams=2, size=16)
+    info = SceneInfo(**{**info.__dict__, "points": None})  # every cell occupied: long rays
+    model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64}), info)
+    with torch.no_grad():
+        model.field.density_mlp[-1].bias[0] = 2.0  # sigma ~ e^2 everywhere: rays terminate early
+    rays = data.rays()
+    o, d, target = rays["origins"][::3], rays["directions"][::3], rays["rgb"][::3]
+    state = model.generator.get_state()
+
+    def loss_and_grads(render):
+        model.zero_grad(set_to_none=True)
+        model.generator.set_state(state)  # the same jittered samples
+        out, n = render()
+        loss = ((out.rgb - target) ** 2).mean()
+        loss.backward()
+        return loss.detach(), n, [p.grad.clone() for p in model.parameters() if p.grad is not None]
+
+    def prepass():
+        ri, t0, t1, x = model._occupied_samples(o, d, jitter=True)
+        with torch.no_grad():
+            keep = terminated_mask(model.field.sigma(x), t0, t1, ri, model.cfg.eps_transmittance)
+        ri, t0, t1, x = ri[keep], t0[keep], t1[keep], x[keep]
+        sigma, geo = model.field.geometry(x)
+        rgb = model.field.color(geo, model.field.encode_directions(d)[ri])
+        return volume_render(sigma, rgb, t0, t1, ri, o.shape[0], model.background_colour(d)), ri.shape[0]
+
+    fast = loss_and_grads(lambda: model._render_rays_train(o, d))
+    slow = loss_and_grads(prepass)
+    marched = model._occupied_samples(o, d, jitter=True)[0].numel()
+    assert fast[1] == slow[1] < 0.7 * marched  # termination dropped many samples, the same ones
+    torch.testing.assert_close(fast[0], slow[0])
+    assert len(fast[2]) == len(slow[2]) > 0
+    for gf, gs in zip(fast[2], slow[2]):
+        torch.testing.assert_close(gf, gs, rtol=1e-4, atol=1e-7)

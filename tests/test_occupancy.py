@@ -69,6 +69,32 @@ def test_cone_warp_inverts_and_steps_grow():
     torch.testing.assert_close(s[1:], e[:-1])
 
 
+def test_disparity_warp_inverts_is_smooth_and_reaches_infinity_in_one_over_c_steps():
+    step, c, t_d = 0.01, 1 / 64, 2.0  # linear to t_sw = 0.64, log to 2, then linear in 1/t
+    t = torch.logspace(-3, 6, 200, dtype=torch.float64)
+    torch.testing.assert_close(_unwarp(_warp(t, step, c, t_d), step, c, t_d), t)
+    # ds/dt is continuous: 1/step below t_sw, 1/(c t) between, t_d/(c t^2) beyond
+    for knot in (step / c, t_d):
+        h = 1e-7
+        lo, hi = torch.tensor([knot - h, knot], dtype=torch.float64), torch.tensor([knot, knot + h], dtype=torch.float64)
+        slopes = (_warp(hi, step, c, t_d) - _warp(lo, step, c, t_d)) / h
+        torch.testing.assert_close(slopes[0], slopes[1], rtol=1e-5, atol=0)
+    s_d = _warp(torch.tensor([t_d], dtype=torch.float64), step, c, t_d)
+    s_inf = _warp(torch.tensor([1e300], dtype=torch.float64), step, c, t_d)
+    torch.testing.assert_close(s_inf - s_d, torch.tensor([1 / c], dtype=torch.float64))
+    assert _unwarp(s_inf + 0.5, step, c, t_d).isinf().all()  # past s(inf): infinitely far
+    # a ray to t = 1e4: 64 linear + 64 ln(2 / 0.64) log + < 64 disparity intervals, instead of
+    # the 64 ln(1e4 / 0.64) ~ 618 log intervals of the cone alone
+    _, s, e = march_intervals(torch.tensor([0.0]), torch.tensor([1e4]), step, c, disparity_from=t_d)
+    assert len(s) == math.ceil(64 + 64 * math.log(2 / 0.64) + 64 * (1 - 2 / 1e4))
+    assert s[0] == 0 and e[-1] == 1e4 and torch.equal(s[1:], e[:-1])
+    _, s_cone, _ = march_intervals(torch.tensor([0.0]), torch.tensor([1e4]), step, c)
+    assert len(s_cone) == math.ceil(64 + 64 * math.log(1e4 / 0.64))
+    # the same up to t_d
+    n_d = int(s_d.item())
+    torch.testing.assert_close(s[:n_d], s_cone[:n_d])
+
+
 def test_cells_round_trip():
     idx = torch.arange(4**3)
     x = cell_points(idx, 4, torch.full((64, 3), 0.5))

@@ -13,7 +13,8 @@ Empty-space skipping (`occupancy_res > 0`, the CPU default; the paper preset tur
 shared occupancy grid, refreshed from the fine network's density, shrinks every ray's range to the
 hull of its occupied cells before the coarse samples are laid out, so the same sample budget lands
 on the object; rays that cross no occupied cell are not sent through either network at all (they
-see the background).
+see the background: for an unbounded capture a learned environment map, `recon.models.background`).
+When the scene has SfM points the grid starts from the cells around them instead of every cell.
 
 Speed on a CPU (lego-200, 2 threads, `bench/results/volume_tuning.md`): the MLP matmuls run in
 bf16 under autocast where the hardware has native bf16 (`precision`), 3x the fp32 step rate; the

@@ -18,22 +18,31 @@ from torch import Tensor
 
 
 @numba.njit(cache=True, inline="always")
-def _warp(t, step, cone):
+def _warp(t, step, cone, t_far):
     if cone <= 0.0:
         return t / step
     t_sw = step / cone
-    return min(t, t_sw) / step + math.log(max(t, t_sw) / t_sw) / cone
+    t_d = max(t_far, t_sw)
+    s = min(t, t_sw) / step + math.log(min(max(t, t_sw), t_d) / t_sw) / cone
+    if t > t_d:
+        s += (1.0 - t_d / t) / cone
+    return s
 
 
 @numba.njit(cache=True, inline="always")
-def _unwarp(s, step, cone):
+def _unwarp(s, step, cone, t_far):
     if cone <= 0.0:
         return s * step
     t_sw = step / cone
     s_sw = t_sw / step
     if s <= s_sw:
         return s * step
-    return t_sw * math.exp(max(s - s_sw, 0.0) * cone)
+    t_d = max(t_far, t_sw)
+    s_d = s_sw + math.log(t_d / t_sw) / cone
+    if s <= s_d:
+        return t_sw * math.exp((s - s_sw) * cone)
+    den = 1.0 - (s - s_d) * cone
+    return t_d / den if den > 0.0 else math.inf
 
 
 @numba.njit(cache=True, inline="always")
@@ -59,18 +68,19 @@ def _occupied(o, d, t, lo, hi, unbounded, occ, res):
 
 
 @numba.njit(cache=True)
-def _march_ray(r, o, d, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, cap, out_s, out_e, write):
+def _march_ray(r, o, d, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, out_s, out_e,
+               write):
     """Count (write=False) or write the kept intervals of ray r, at most `cap` of them (the
     first ones, front to back; cap <= 0: no limit); returns how many."""
     if not t_max > t_min:
         return 0
-    s_min, s_max = _warp(t_min, step, cone), _warp(t_max, step, cone)
+    s_min, s_max = _warp(t_min, step, cone, t_far), _warp(t_max, step, cone, t_far)
     count = int(math.ceil(max(s_max - s_min + u, 0.0)))
     count = max(count, 1)
     n = 0
     for k in range(count):
-        start = t_min if k == 0 else _unwarp(s_min + k - u, step, cone)
-        end = min(_unwarp(s_min + k + 1.0 - u, step, cone), t_max)
+        start = t_min if k == 0 else _unwarp(s_min + k - u, step, cone, t_far)
+        end = min(_unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
         if not end > start:
             continue
         if _occupied(o, d, 0.5 * (start + end), lo, hi, unbounded, occ, res):
@@ -84,33 +94,35 @@ def _march_ray(r, o, d, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res
 
 
 @numba.njit(parallel=True, cache=True)
-def _count(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, cap, counts):
+def _count(origins, dirs, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, counts):
     dummy = np.empty(0, dtype=origins.dtype)
     for r in numba.prange(origins.shape[0]):
-        counts[r] = _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, u[r], lo, hi,
+        counts[r] = _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, t_far, u[r], lo, hi,
                                unbounded, occ, res, cap, dummy, dummy, False)
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill(origins, dirs, t_min, t_max, step, cone, u, lo, hi, unbounded, occ, res, cap, offsets,
+def _fill(origins, dirs, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, offsets,
           ray_indices, starts, ends):
     for r in numba.prange(origins.shape[0]):
         a = offsets[r]
         b = offsets[r + 1]
         if b > a:
-            _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, u[r], lo, hi, unbounded,
+            _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, t_far, u[r], lo, hi, unbounded,
                        occ, res, cap, starts[a:b], ends[a:b], True)
             ray_indices[a:b] = r
 
 
 def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, occupied: Tensor,
                    resolution: int, aabb: Tensor, unbounded: bool, step: float, cone_angle: float = 0.0,
-                   u: Tensor | None = None, max_samples: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+                   u: Tensor | None = None, max_samples: int = 0,
+                   disparity_from: float = math.inf) -> tuple[Tensor, Tensor, Tensor]:
     """Packed (ray_indices (N,), t_starts (N,), t_ends (N,)) of the occupied marching intervals.
 
     origins, dirs: (R, 3) CPU float tensors; t_min, t_max: (R,); occupied: (res^3,) bool;
     aabb: (2, 3) scene box; u: (R,) start offsets in [0, 1) or None; max_samples: keep only the
-    first max_samples occupied intervals of each ray (0: all).
+    first max_samples occupied intervals of each ray (0: all); step, cone_angle, disparity_from:
+    the spacing of `occupancy.march_intervals`.
     """
     dt = origins.dtype
     o = origins.detach().contiguous().numpy()
@@ -122,7 +134,8 @@ def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, 
     hi = aabb[1].detach().to(dt).contiguous().numpy()
     occ = occupied.contiguous().numpy()
     counts = np.zeros(o.shape[0], dtype=np.int64)
-    _count(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution,
+    spacing = (float(step), float(cone_angle), float(disparity_from))
+    _count(o, d, tmin, tmax, *spacing, uu, lo, hi, bool(unbounded), occ, resolution,
            int(max_samples), counts)
     offsets = np.zeros(o.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
@@ -130,6 +143,6 @@ def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, 
     ray_indices = np.empty(n, dtype=np.int64)
     starts = np.empty(n, dtype=o.dtype)
     ends = np.empty(n, dtype=o.dtype)
-    _fill(o, d, tmin, tmax, float(step), float(cone_angle), uu, lo, hi, bool(unbounded), occ, resolution,
+    _fill(o, d, tmin, tmax, *spacing, uu, lo, hi, bool(unbounded), occ, resolution,
           int(max_samples), offsets, ray_indices, starts, ends)
     return torch.from_numpy(ray_indices), torch.from_numpy(starts), torch.from_numpy(ends)

@@ -27,17 +27,26 @@ from recon.volrend.volrend import render_transmittance
 
 
 def march_intervals(
-    t_min: Tensor, t_max: Tensor, step: float, cone_angle: float = 0.0, u: Tensor | None = None
+    t_min: Tensor,
+    t_max: Tensor,
+    step: float,
+    cone_angle: float = 0.0,
+    u: Tensor | None = None,
+    disparity_from: float = math.inf,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Every marching interval of every ray, packed: edges at s_k = s(t_min) + k - u in the warped
-    coordinate s(t) = t / step (cone_angle = 0), or, with cone_angle c > 0, s with
+    """Every marching interval of every ray, packed: edges at s_k = s(t_min) + k - u in a warped
+    coordinate s(t) (`_warp`): s = t / step for cone_angle = 0; with cone_angle c > 0,
     ds/dt = 1 / max(step, c t) (steps grow linearly with distance, as Instant-NGP does for
-    unbounded scenes). The first edge is t_min and the last t_max.
+    unbounded scenes) up to t_d = max(disparity_from, step / c), and beyond t_d steps grow as
+    t^2, i.e. uniformly in disparity 1/t as mip-NeRF 360 samples an unbounded ray (Barron et
+    al. 2022, Sec. 2, g(x) = 1/x), which is also how the contraction's resolution falls off:
+    at most 1/c intervals from t_d to infinity. The first edge is t_min and the last t_max.
 
     t_min, t_max: (R,) (t_max <= t_min means no sample); u: (R,) in [0, 1) start offsets (jitter),
     None for 0. Returns ray_indices (N,) int64, t_starts (N,), t_ends (N,), sorted by ray.
     """
-    s_min, s_max = _warp(t_min, step, cone_angle), _warp(t_max, step, cone_angle)
+    s_min = _warp(t_min, step, cone_angle, disparity_from)
+    s_max = _warp(t_max, step, cone_angle, disparity_from)
     u = torch.zeros_like(s_min) if u is None else u
     counts = torch.ceil((s_max - s_min + u).clamp_min(0.0)).long()
     counts = torch.where(t_max > t_min, counts.clamp_min(1), torch.zeros_like(counts))
@@ -46,28 +55,42 @@ def march_intervals(
     k = torch.arange(ray_indices.shape[0], device=counts.device) - first[ray_indices]
     k = k.to(s_min.dtype)
     s0, uu = s_min[ray_indices], u[ray_indices]
-    starts = torch.where(k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, step, cone_angle))
-    ends = torch.minimum(_unwarp(s0 + k + 1.0 - uu, step, cone_angle), t_max[ray_indices])
+    starts = torch.where(k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, step, cone_angle, disparity_from))
+    ends = torch.minimum(_unwarp(s0 + k + 1.0 - uu, step, cone_angle, disparity_from), t_max[ray_indices])
     keep = ends > starts  # ceil() of a rounded count can add one empty interval at the end
     return ray_indices[keep], starts[keep], ends[keep]
 
 
-def _warp(t: Tensor, step: float, cone_angle: float) -> Tensor:
-    """s(t): t/step up to t_sw = step/c, then t_sw/step + ln(t/t_sw)/c (log spacing)."""
+def _warp(t: Tensor, step: float, cone_angle: float, disparity_from: float = math.inf) -> Tensor:
+    """s(t): t/step up to t_sw = step/c, then t_sw/step + ln(t/t_sw)/c (log spacing) up to
+    t_d = max(disparity_from, t_sw), then s(t_d) + (1 - t_d/t)/c (linear in 1/t). Continuous
+    with a continuous derivative, so steps never jump."""
     if cone_angle <= 0.0:
         return t / step
-    t_sw = step / cone_angle
-    log_part = torch.log(t.clamp_min(t_sw) / t_sw) / cone_angle
-    return torch.minimum(t, torch.full_like(t, t_sw)) / step + log_part
+    c = cone_angle
+    t_sw = step / c
+    t_d = max(disparity_from, t_sw)
+    s = torch.minimum(t, torch.full_like(t, t_sw)) / step + torch.log(t.clamp(t_sw, t_d) / t_sw) / c
+    if math.isinf(t_d):
+        return s
+    return s + (1.0 - t_d / t.clamp_min(t_d)) / c
 
 
-def _unwarp(s: Tensor, step: float, cone_angle: float) -> Tensor:
-    """Inverse of `_warp`."""
+def _unwarp(s: Tensor, step: float, cone_angle: float, disparity_from: float = math.inf) -> Tensor:
+    """Inverse of `_warp` (s beyond s(inf) = s(t_d) + 1/c maps to +inf)."""
     if cone_angle <= 0.0:
         return s * step
-    t_sw = step / cone_angle
+    c = cone_angle
+    t_sw = step / c
     s_sw = t_sw / step
-    return torch.where(s <= s_sw, s * step, t_sw * torch.exp((s - s_sw).clamp_min(0.0) * cone_angle))
+    t_d = max(disparity_from, t_sw)
+    s_d = s_sw + math.log(t_d / t_sw) / c
+    t_log = t_sw * torch.exp((s.clamp(max=s_d) - s_sw).clamp_min(0.0) * c)
+    t = torch.where(s <= s_sw, s * step, t_log)
+    if math.isinf(t_d):
+        return t
+    t_disp = t_d / (1.0 - (s - s_d).clamp_min(0.0) * c)
+    return torch.where(s <= s_d, t, torch.where(t_disp > 0, t_disp, torch.full_like(t_disp, math.inf)))
 
 
 def cells_of(x_unit: Tensor, resolution: int) -> tuple[Tensor, Tensor]:
@@ -214,13 +237,14 @@ class OccupancyGrid(nn.Module):
         cone_angle: float = 0.0,
         u: Tensor | None = None,
         max_samples: int = 0,
+        disparity_from: float = math.inf,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """March rays (R,) from t_min to t_max and keep the intervals whose midpoint, mapped by
+        """March rays (R,) from t_min to t_max (spacing: `march_intervals`) and keep the intervals whose midpoint, mapped by
         `to_unit` (world (N, 3) -> unit cube), is in an occupied cell; with max_samples > 0 only
         the first max_samples of them per ray (front to back: what lies behind is left to the
         background, as Instant-NGP's fixed maximum of marching steps does).
         Returns packed ray_indices (N,), t_starts (N,), t_ends (N,)."""
-        ray_indices, starts, ends = march_intervals(t_min, t_max, step, cone_angle, u)
+        ray_indices, starts, ends = march_intervals(t_min, t_max, step, cone_angle, u, disparity_from)
         mids = 0.5 * (starts + ends)
         x = origins[ray_indices] + mids[:, None] * directions[ray_indices]
         keep = self.is_occupied(to_unit(x))
@@ -241,12 +265,13 @@ class OccupancyGrid(nn.Module):
         cone_angle: float = 0.0,
         u: Tensor | None = None,
         max_samples: int = 0,
+        disparity_from: float = math.inf,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """`sample` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
         numba twin (`march_kernels.march_occupied`, never materialises the dense intervals),
         elsewhere `sample` itself. Same packed (ray_indices, t_starts, t_ends)."""
         if origins.device.type == "cpu":
             return march_occupied(origins, directions, t_min, t_max, self.occupied, self.resolution, aabb,
-                                  unbounded, step, cone_angle, u, max_samples)
-        return self.sample(origins, directions, t_min, t_max,
-                           lambda x: scene_to_unit_cube(x, aabb, unbounded), step, cone_angle, u, max_samples)
+                                  unbounded, step, cone_angle, u, max_samples, disparity_from)
+        return self.sample(origins, directions, t_min, t_max, lambda x: scene_to_unit_cube(x, aabb, unbounded),
+                           step, cone_angle, u, max_samples, disparity_from)
