@@ -69,6 +69,8 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
         if not idx:
             raise WorkspaceError(f"the scene has no '{cfg.split}' views")
         cams, names = scene.cameras(idx, device, k_render), [scene.frames[i]["name"] for i in idx]
+        if cfg.split == "train" and hasattr(model, "train_cameras"):
+            cams = model.train_cameras(cams)  # the training poses as the model refined them
         sizes = [level_size(scene.frames[i]["width"], scene.frames[i]["height"], k_out) for i in idx]
         target = cfg.split
     out_dir = ws.renders_dir(run, target)
