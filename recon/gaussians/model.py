@@ -110,7 +110,7 @@ PRESETS = {
         "init_points": 4000, "init_from_images": True, "sh_degree_interval": 500, "lr_decay_steps": 5000,
         "densify_start": 100, "densify_stop": 2000, "densify_interval": 100,
         "opacity_reset_interval": 1000, "max_gaussians": 200_000, "default_steps": 3000,
-        "clone_opacity_correction": True,
+        "clone_opacity_correction": True, "c2f_factor": 4, "appearance": "auto",
     },
 }
 
