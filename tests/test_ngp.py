@@ -192,6 +192,10 @@ def test_unbounded_first_step_is_capped_and_seeded_from_points():
     assert grid.is_occupied(model.to_unit(info.points)).all()  # every point's cell
     assert 0 < grid.occupancy_fraction() < 0.1  # and a thin shell around them, not the whole cube
     assert not grid.is_occupied(model.to_unit(torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]))).any()
+    # points outside the box (the sparse far tail) seed nothing: one far cell spans a vast region
+    far = torch.tensor([[40.0, 0.0, 0.0], [0.0, -9.0, 3.0]])
+    with_far = NGPModel(cfg, SceneInfo(**{**info.__dict__, "points": torch.cat([info.points, far])}))
+    assert torch.equal(with_far.occupancy.occupied, grid.occupied)
     stats = model.train_step(data, 0)
     assert 0 < stats["samples_per_ray"] <= 40
     unseeded = NGPModel(cfg, SceneInfo(**{**info.__dict__, "points": None}))
@@ -263,7 +267,8 @@ def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients()
     def loss_and_grads(render):
         model.zero_grad(set_to_none=True)
         model.generator.set_state(state)  # the same jittered samples
-        out, n = render()
+        out, ri, *_ = render()
+        n = ri.numel()
         loss = ((out.rgb - target) ** 2).mean()
         loss.backward()
         return loss.detach(), n, [p.grad.clone() for p in model.parameters() if p.grad is not None]
@@ -275,7 +280,7 @@ def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients()
         ri, t0, t1, x = ri[keep], t0[keep], t1[keep], x[keep]
         sigma, geo = model.field.geometry(x)
         rgb = model.field.color(geo, model.field.encode_directions(d)[ri])
-        return volume_render(sigma, rgb, t0, t1, ri, o.shape[0], model.background_colour(d)), ri.shape[0]
+        return volume_render(sigma, rgb, t0, t1, ri, o.shape[0], model.background_colour(d)), ri
 
     fast = loss_and_grads(lambda: model._render_rays_train(o, d))
     slow = loss_and_grads(prepass)
@@ -285,3 +290,17 @@ def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients()
     assert len(fast[2]) == len(slow[2]) > 0
     for gf, gs in zip(fast[2], slow[2]):
         torch.testing.assert_close(gf, gs, rtol=1e-4, atol=1e-7)
+
+
+def test_distortion_loss_is_added_on_the_normalized_marching_distance():
+    data, info = unbounded_sphere_scene(n_cams=2, size=12)
+    model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion_weight": 0.1}), info)
+    t = torch.tensor([info.near, 1.0, 3.0, 30.0, info.far])
+    s = model.normalized_distance(t)
+    torch.testing.assert_close(s[[0, -1]], torch.tensor([0.0, 1.0]))
+    assert (s.diff() > 0).all()
+    stats = model.train_step(data, 0)
+    mse = 10 ** (-stats["psnr"] / 10)
+    assert stats["loss"] > mse * (1 + 1e-4)  # the distortion term is part of the loss
+    plain = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64}), info).train_step(data, 0)
+    torch.testing.assert_close(torch.tensor(plain["loss"]), torch.tensor(10 ** (-plain["psnr"] / 10)))

@@ -37,6 +37,7 @@ from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, Tr
 from recon.models.raymarch import (
     exp_decay_lr,
     mlp_dtype,
+    points_in_box,
     psnr,
     ray_bounds,
     render_image,
@@ -89,7 +90,7 @@ class NeRFConfig:
     occupancy_warmup: int = 256  # steps with every cell kept occupied (NeRF learns its shape slower than ngp)
     occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
     occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities
-    occupancy_seed_dilation: int = 2  # start from the cells within this many of an SfM point (-1 = all cells)
+    occupancy_seed_dilation: int = 2  # start from the cells within this many of an SfM point in the box (-1 = all)
     march_steps: int = 256  # marching steps along the box diagonal that find each ray's occupied range
     chunk: int = 2048  # rays per chunk when rendering images
     default_steps: int = 3000  # steps when no stopping rule is given
@@ -157,9 +158,9 @@ class NeRFModel(Model):
         self.register_buffer("background", scene.background.clone().float())
         self.coarse, self.fine = NeRFMLP(cfg), NeRFMLP(cfg)
         self.occupancy = OccupancyGrid(cfg.occupancy_res) if cfg.occupancy_res > 0 else None
-        if self.occupancy is not None and scene.points is not None and len(scene.points) \
-                and cfg.occupancy_seed_dilation >= 0:
-            points_unit = scene_to_unit_cube(scene.points.to(self.aabb), self.aabb, scene.unbounded)
+        seeds = points_in_box(scene)
+        if self.occupancy is not None and seeds is not None and cfg.occupancy_seed_dilation >= 0:
+            points_unit = scene_to_unit_cube(seeds.to(self.aabb), self.aabb, scene.unbounded)
             self.occupancy.seed(points_unit, cfg.occupancy_seed_dilation)
         self.environment = EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         self.dtype = mlp_dtype(self.aabb.device, cfg.precision)

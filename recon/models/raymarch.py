@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from recon.cameras import Cameras, camera_rays
 from recon.models.base import SceneInfo
-from recon.volrend import ray_aabb_intersect
+from recon.volrend import normalize_to_box, ray_aabb_intersect
 
 # render_rays(origins (R, 3), directions (R, 3)) -> (rgb (R, 3), expected t (R,), acc (R,))
 RenderRaysFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
@@ -65,6 +65,17 @@ def ray_bounds(scene: SceneInfo, origins: Tensor, directions: Tensor) -> tuple[T
     t0, t1 = torch.maximum(t0, near), torch.minimum(t1, far)
     t1 = torch.where(hit & (t1 > t0), t1, t0)
     return t0, t1
+
+
+def points_in_box(scene: SceneInfo) -> Tensor | None:
+    """The scene's SfM points (P, 3) that lie in its box, or None when it has none. The box is
+    fitted to the robust bulk of the points; those outside it are the sparse, noisy tail and
+    the far field, where one contracted occupancy cell spans a vast region: marking them would
+    make whole shells of the far field occupied."""
+    if scene.points is None or not len(scene.points):
+        return None
+    inside = (normalize_to_box(scene.points, scene.aabb.to(scene.points)).abs() <= 1.0).all(-1)
+    return scene.points[inside] if inside.any() else None
 
 
 def mlp_dtype(device: torch.device, precision: str) -> torch.dtype:

@@ -61,6 +61,12 @@ def march_intervals(
     return ray_indices[keep], starts[keep], ends[keep]
 
 
+def marching_distance(t: Tensor, step: float, cone_angle: float = 0.0, disparity_from: float = math.inf) -> Tensor:
+    """The coordinate s(t) in which `march_intervals` steps are uniform, one unit per step
+    (linear in t near, logarithmic along the cone, linear in 1/t beyond disparity_from)."""
+    return _warp(t, step, cone_angle, disparity_from)
+
+
 def _warp(t: Tensor, step: float, cone_angle: float, disparity_from: float = math.inf) -> Tensor:
     """s(t): t/step up to t_sw = step/c, then t_sw/step + ln(t/t_sw)/c (log spacing) up to
     t_d = max(disparity_from, t_sw), then s(t_d) + (1 - t_d/t)/c (linear in 1/t). Continuous
