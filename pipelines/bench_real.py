@@ -71,12 +71,12 @@ def markdown(results: dict) -> str:
     sfm = results.get("sfm", {})
     sfm_time = "workspace reused" if sfm.get("reused") else f"{sfm.get('wall_s', 0):.0f} s"
     lines = [f"# fox-real {results['date']} on {results['machine']}",
-             f"matmul {results['matmul_gflops']:.1f} GFLOP/s (float32, 2 threads); load average at start "
-             f"{[round(x, 2) for x in results['load_average']]}", "",
-             f"sfm: {sfm.get('images_registered', sfm.get('images', '?'))} images registered "
-             f"({sfm_time}); held-out photos evaluated at 1/{EVAL_DOWNSCALE} of the sfm size.", "",
-             "| method | budget s | train wall s | trained at | steps | steps/s | PSNR | SSIM | LPIPS | "
-             "border PSNR | target | peak MB | model MB | commit | load before |",
+             (f"matmul {results['matmul_gflops']:.1f} GFLOP/s (float32, 2 threads); load average at start "
+              f"{[round(x, 2) for x in results['load_average']]}"), "",
+             (f"sfm: {sfm.get('images_registered', sfm.get('images', '?'))} images registered "
+              f"({sfm_time}); held-out photos evaluated at 1/{EVAL_DOWNSCALE} of the sfm size."), "",
+             ("| method | budget s | train wall s | trained at | steps | steps/s | PSNR | SSIM | LPIPS | "
+              "border PSNR | target | peak MB | model MB | commit | load before |"),
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["runs"]:
         if "error" in r:

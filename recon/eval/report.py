@@ -23,8 +23,8 @@ def _size(wh) -> str:
 
 
 def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
-    rows = ["| run | method | trained at | steps | train s | eval at | PSNR | border PSNR | SSIM | LPIPS | "
-            "t→25 dB s | render ms | params | peak MB | Chamfer | F-score | depth absrel |",
+    rows = [("| run | method | trained at | steps | train s | eval at | PSNR | border PSNR | SSIM | LPIPS | "
+             "t→25 dB s | render ms | params | peak MB | Chamfer | F-score | depth absrel |"),
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for run, m in sorted(metrics.items()):
         sp, geo, mean = m.get("speed", {}), m.get("geometry", {}), m.get("mean", {})
@@ -41,10 +41,10 @@ def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
         ]) + " |")
     any_m = next(iter(metrics.values()), {})
     notes = [
-        f"- Image metrics on the held-out `{any_m.get('split', 'test')}` views at the size in 'eval at' "
-        "(the photos area-downsampled to it; renders of a finer-trained run too); "
-        f"{any_m.get('lpips_network', '')}. Border PSNR: the outer "
-        f"{100 * any_m.get('border_fraction', 0.15):.0f} % of each side, where a capture's far background shows.",
+        (f"- Image metrics on the held-out `{any_m.get('split', 'test')}` views at the size in 'eval at' "
+         "(the photos area-downsampled to it; renders of a finer-trained run too); "
+         f"{any_m.get('lpips_network', '')}. Border PSNR: the outer "
+         f"{100 * any_m.get('border_fraction', 0.15):.0f} % of each side, where a capture's far background shows."),
         "- Geometry (Chamfer, F-score at τ) in the original scene units against the ground truth, when given.",
         "- PSNR certifies interpolation between the cameras, not geometry: read both columns.",
     ]

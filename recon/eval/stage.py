@@ -18,9 +18,10 @@ from recon.eval.speed import read_log, speed_metrics
 from recon.io.exr import read_depth_exr
 from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
 from recon.render.views import render_view
-from recon.train.stage import load_model, model_path, output_levels, pick_device
-from recon.workspace.scene import level_size
+from recon.train.resolution import output_levels
+from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+from recon.workspace.scene import level_size
 
 
 @dataclass(frozen=True)

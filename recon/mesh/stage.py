@@ -20,7 +20,8 @@ from recon.mesh.marching_cubes import (
     soft_field_threshold,
 )
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
-from recon.train.stage import load_model, model_path, pick_device, trained_resolution
+from recon.train.resolution import trained_resolution
+from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 
 

@@ -15,9 +15,10 @@ from recon.io.exr import write_depth_exr
 from recon.io.images import to_uint8, write_png
 from recon.render.paths import interpolate_path, orbit_path, spiral_path
 from recon.render.views import render_view
-from recon.train.stage import load_model, model_path, output_levels, pick_device
-from recon.workspace.scene import level_size
+from recon.train.resolution import output_levels
+from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
+from recon.workspace.scene import level_size
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ def area_downsample_render(out: dict[str, Tensor], width: int, height: int) -> d
     acc = area(out["acc"])
     weighted = area(out["depth"] * out["acc"])
     depth = np.where(acc > 1e-6, weighted / np.maximum(acc, 1e-6), 0.0)
-    to = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32)).to(out["rgb"].device)  # noqa: E731
+    to = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32)).to(out["rgb"].device)
     return {"rgb": to(area(out["rgb"])), "depth": to(depth), "acc": to(acc)}
 
 

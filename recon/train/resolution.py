@@ -13,10 +13,14 @@ budget in the rule).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 
-from recon.models.base import ResolutionPolicy
-from recon.workspace.scene import level_size
+import torch
+
+from recon.models.base import MethodSpec, ResolutionPolicy
+from recon.train.config import TrainConfig
+from recon.workspace.scene import Scene, level_size
 
 MIN_SIDE = 128  # the automatic choice never trains on a longer side below this
 MEASURED_THREADS = 2  # the CPU throughputs of ResolutionPolicy were measured at 2 threads
@@ -117,3 +121,61 @@ def choose_resolution(width: int, height: int, n_views: int, policy: ResolutionP
     elif k == k_cap and k_cap > 1:
         why += f"; {cap_note}"
     return result(k, "auto", why)
+
+
+# ---- the rule applied to a workspace's scene and a run --------------------------------------
+def working_resolution(scene: Scene, spec: MethodSpec, cfg: TrainConfig, device: torch.device,
+                       ) -> WorkingResolution:
+    """The pyramid level this run trains at (see `recon.train.resolution`)."""
+    width, height = scene.image_size("train")
+    return choose_resolution(width, height, len(scene.split("train")), spec.resolution,
+                             cfg.time_budget_s, cfg.steps, _threads(cfg), device.type == "cpu",
+                             cfg.max_side, cfg.downscale)
+
+
+def _threads(cfg: TrainConfig) -> int:
+    return cfg.threads or torch.get_num_threads() or MEASURED_THREADS
+
+
+def plan_schedules(method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution,
+                   device: torch.device):
+    """A method whose config has a `schedule_steps` field left at 0 gets the run's planned step
+    count there (`resolution.planned_steps`), to lay its step-based schedules out over the run
+    it will actually have. Returns the (possibly) updated config."""
+    if getattr(method_cfg, "schedule_steps", None) != 0:
+        return method_cfg
+    plan = planned_steps(res.width, res.height, spec.resolution, cfg.time_budget_s, cfg.steps,
+                         _threads(cfg), device.type == "cpu")
+    return dataclasses.replace(method_cfg, schedule_steps=plan) if plan else method_cfg
+
+
+def trained_resolution(run_doc: dict, scene: Scene) -> WorkingResolution:
+    """The working resolution recorded in a run.json (runs from before working resolutions
+    existed trained on the sfm images themselves)."""
+    saved = run_doc.get("resolution", {}).get("working")
+    if saved:
+        return WorkingResolution(**saved)
+    return WorkingResolution(1, *scene.image_size("train"), "downscale", "recorded before levels existed")
+
+
+def output_levels(scene: Scene, run_doc: dict, max_side: int = 0, downscale: int = 0,
+                  ) -> tuple[int, int]:
+    """(output level, render level) for `recon eval` / `recon render` of a run: the output is
+    at `downscale`, or the level that fits `max_side`, or by default the run's training level;
+    it is rendered at the finer of the output and training levels (a coarser output is then
+    area-downsampled from the render, like the photos of that level)."""
+    trained = trained_resolution(run_doc, scene).downscale
+    if downscale:
+        out = downscale
+    elif max_side:
+        out = downscale_for_max_side(*scene.image_size("train"), max_side)
+    else:
+        out = trained
+    return out, min(out, trained)
+
+
+def eval_downscale(scene: Scene, train_downscale: int, max_side: int) -> int:
+    """The level of the periodic held-out PSNR: the training level, or coarser so that the
+    longer side is at most `max_side` (a few small renders, cheap inside the time budget)."""
+    width, height = scene.image_size("train")
+    return max(train_downscale, downscale_for_max_side(width, height, max_side) if max_side else 1)

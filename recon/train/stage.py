@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import os
 import random
@@ -22,11 +21,10 @@ from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint, save
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
 from recon.train.resolution import (
-    MEASURED_THREADS,
-    WorkingResolution,
-    choose_resolution,
-    downscale_for_max_side,
-    planned_steps,
+    eval_downscale,
+    plan_schedules,
+    trained_resolution,
+    working_resolution,
 )
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
@@ -48,7 +46,10 @@ class LearningRateScale:
         self._handles = []
 
     def __enter__(self) -> LearningRateScale:
-        from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
+        from torch.optim.optimizer import (
+            register_optimizer_step_post_hook,
+            register_optimizer_step_pre_hook,
+        )
 
         self._handles = [register_optimizer_step_pre_hook(lambda opt, *_: self._apply(opt, self.scale)),
                          register_optimizer_step_post_hook(lambda opt, *_: self._apply(opt, 1 / self.scale))]
@@ -99,63 +100,6 @@ def heldout_views(scene: Scene, n: int) -> list[int]:
         return []
     pick = np.linspace(0, len(test) - 1, min(n, len(test))).round().astype(int)
     return [test[i] for i in sorted(set(pick.tolist()))]
-
-
-def working_resolution(scene: Scene, spec: MethodSpec, cfg: TrainConfig, device: torch.device,
-                       ) -> WorkingResolution:
-    """The pyramid level this run trains at (see `recon.train.resolution`)."""
-    width, height = scene.image_size("train")
-    return choose_resolution(width, height, len(scene.split("train")), spec.resolution,
-                             cfg.time_budget_s, cfg.steps, _threads(cfg), device.type == "cpu",
-                             cfg.max_side, cfg.downscale)
-
-
-def _threads(cfg: TrainConfig) -> int:
-    return cfg.threads or torch.get_num_threads() or MEASURED_THREADS
-
-
-def plan_schedules(method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution,
-                   device: torch.device):
-    """A method whose config has a `schedule_steps` field left at 0 gets the run's planned step
-    count there (`resolution.planned_steps`), to lay its step-based schedules out over the run
-    it will actually have. Returns the (possibly) updated config."""
-    if getattr(method_cfg, "schedule_steps", None) != 0:
-        return method_cfg
-    plan = planned_steps(res.width, res.height, spec.resolution, cfg.time_budget_s, cfg.steps,
-                         _threads(cfg), device.type == "cpu")
-    return dataclasses.replace(method_cfg, schedule_steps=plan) if plan else method_cfg
-
-
-def trained_resolution(run_doc: dict, scene: Scene) -> WorkingResolution:
-    """The working resolution recorded in a run.json (runs from before working resolutions
-    existed trained on the sfm images themselves)."""
-    saved = run_doc.get("resolution", {}).get("working")
-    if saved:
-        return WorkingResolution(**saved)
-    return WorkingResolution(1, *scene.image_size("train"), "downscale", "recorded before levels existed")
-
-
-def output_levels(scene: Scene, run_doc: dict, max_side: int = 0, downscale: int = 0,
-                  ) -> tuple[int, int]:
-    """(output level, render level) for `recon eval` / `recon render` of a run: the output is
-    at `downscale`, or the level that fits `max_side`, or by default the run's training level;
-    it is rendered at the finer of the output and training levels (a coarser output is then
-    area-downsampled from the render, like the photos of that level)."""
-    trained = trained_resolution(run_doc, scene).downscale
-    if downscale:
-        out = downscale
-    elif max_side:
-        out = downscale_for_max_side(*scene.image_size("train"), max_side)
-    else:
-        out = trained
-    return out, min(out, trained)
-
-
-def eval_downscale(scene: Scene, train_downscale: int, max_side: int) -> int:
-    """The level of the periodic held-out PSNR: the training level, or coarser so that the
-    longer side is at most `max_side` (a few small renders, cheap inside the time budget)."""
-    width, height = scene.image_size("train")
-    return max(train_downscale, downscale_for_max_side(width, height, max_side) if max_side else 1)
 
 
 def model_path(ws: Workspace, run: str) -> Path:
