@@ -1,5 +1,5 @@
-"""`--method nerf`: the original NeRF (Mildenhall et al. 2020; seed "NeRF and the volume
-rendering integral", "Stratified and hierarchical sampling").
+"""`--method nerf`: the original NeRF (Mildenhall et al. 2020: the volume rendering integral,
+Sec. 4; stratified and hierarchical sampling, Sec. 5.2).
 
 Positional encoding (L = 10 for position, L = 4 for direction, raw input included), an MLP of
 `depth` x `width` whose layer `skip_layer` also sees the encoded input (the paper concatenates
@@ -7,7 +7,7 @@ it to the fifth layer's activation: skips=[4] in the reference code), density fr
 position only, colour from a `width` feature + the encoded direction through one `width / 2`
 layer. Two such networks: the coarse one is rendered at `n_coarse` stratified samples, the fine
 one at those plus `n_fine` samples drawn from the coarse weights by inverse-CDF sampling. The
-loss is the sum of both MSEs (seed, "The training objective").
+loss is the sum of both MSEs (Mildenhall et al. 2020, eq. 6).
 
 Empty-space skipping (`occupancy_res > 0`, the CPU default; the paper preset turns it off): the
 shared occupancy grid, refreshed from the fine network's density, shrinks every ray's range to the

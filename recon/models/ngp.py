@@ -1,8 +1,8 @@
-"""`--method ngp`: Instant-NGP (Mueller et al. 2022; seed "Instant-NGP and the multiresolution
-hash grid"): a multiresolution hash encoding, a one-hidden-layer density MLP giving sigma
-(truncated exp) and a 15-dim geometry feature, a two-hidden-layer colour MLP on that feature and
-the spherical-harmonic encoding of the view direction, occupancy-grid empty-space skipping and
-early ray termination, Adam with eps 1e-15.
+"""`--method ngp`: Instant-NGP (Müller et al. 2022, "Instant neural graphics primitives with a
+multiresolution hash encoding"): a multiresolution hash encoding, a one-hidden-layer density MLP
+giving sigma (truncated exp) and a 15-dim geometry feature, a two-hidden-layer colour MLP on that
+feature and the spherical-harmonic encoding of the view direction, occupancy-grid empty-space
+skipping and early ray termination, Adam with eps 1e-15.
 
 A training step: draw a ray batch, march it through the occupancy grid (packed samples, at
 most `max_samples_per_ray` per ray), evaluate the density of all of them, drop those behind

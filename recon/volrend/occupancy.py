@@ -1,5 +1,5 @@
-"""Empty-space skipping and early ray termination (Instant-NGP, seed "Instant-NGP and the
-multiresolution hash grid"; the bitfield scheme of nerfacc's OccupancyGrid).
+"""Empty-space skipping and early ray termination (Müller et al. 2022, Instant-NGP, Sec. 4;
+the bitfield scheme of nerfacc's OccupancyGrid).
 
 A bitfield of res^3 cells over the unit cube [0, 1]^3 (the domain every grid model maps its
 scene into, see `contraction.scene_to_unit_cube`) says where the density may be non-zero. Its
