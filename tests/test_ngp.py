@@ -11,7 +11,7 @@ from recon.cameras import Cameras
 from recon.cameras.cameras import intrinsics_matrix
 from recon.cameras.rays import camera_rays
 from recon.models.base import METHODS, SceneInfo, TrainData
-from recon.models.ngp import PRESETS, NGPConfig, NGPModel
+from recon.models.ngp import PRESETS, NGPConfig, NGPModel, uses_distortion
 
 RADIUS = 0.5
 
@@ -292,6 +292,13 @@ def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients()
         torch.testing.assert_close(gf, gs, rtol=1e-4, atol=1e-7)
 
 
+def test_distortion_is_on_by_default_for_unbounded_scenes_only():
+    assert uses_distortion("auto", True) and not uses_distortion("auto", False)
+    assert uses_distortion("on", False) and not uses_distortion("off", True)
+    with pytest.raises(ValueError, match="distortion must be"):
+        uses_distortion("yes", True)
+
+
 def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     data, info = unbounded_sphere_scene(n_cams=2, size=12)
     model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion_weight": 0.1}), info)
@@ -302,5 +309,6 @@ def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     stats = model.train_step(data, 0)
     mse = 10 ** (-stats["psnr"] / 10)
     assert stats["loss"] > mse * (1 + 1e-4)  # the distortion term is part of the loss
-    plain = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64}), info).train_step(data, 0)
+    plain = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion": "off"}),
+                     info).train_step(data, 0)
     torch.testing.assert_close(torch.tensor(plain["loss"]), torch.tensor(10 ** (-plain["psnr"] / 10)))
