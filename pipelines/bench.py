@@ -43,7 +43,8 @@ def matmul_gflops(n: int = 1024, reps: int = 10) -> float:
 
 def recon(*args: str) -> dict:
     env = {**os.environ, "OMP_NUM_THREADS": "2"}
-    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args, "--json"], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args, "--json"], check=False,
+                          capture_output=True,
                           text=True, env=env, cwd=ROOT)
     if proc.returncode != 0:
         raise RuntimeError(f"recon {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
@@ -52,8 +53,10 @@ def recon(*args: str) -> dict:
 
 def git_commit() -> str:
     """HEAD's short hash, with "+dirty" when tracked files differ (a result names its code)."""
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
-    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "recon", "pipelines"], cwd=ROOT).returncode
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], check=False, capture_output=True,
+                          text=True, cwd=ROOT)
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "recon", "pipelines"], check=False,
+                           cwd=ROOT).returncode
     return (head.stdout.strip() or "unknown") + ("+dirty" if dirty else "")
 
 
@@ -82,8 +85,8 @@ def _log(ws: Path, run: str) -> list[dict]:
 
 def markdown(results: dict) -> str:
     lines = [f"# recon benchmark {results['date']} on {results['machine']}",
-             f"matmul {results['matmul_gflops']:.1f} GFLOP/s (float32, 2 threads); load average at start "
-             f"{results['load_average']}", "",
+             (f"matmul {results['matmul_gflops']:.1f} GFLOP/s (float32, 2 threads); load average at "
+              f"start {results['load_average']}"), "",
              "## lego-200", "",
              "| method | budget s | steps | steps/s | PSNR | SSIM | LPIPS | t→25 dB s | render ms/frame | peak MB | params | model MB |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]

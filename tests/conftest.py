@@ -19,7 +19,8 @@ SAMPLE_DATA = REPO / "sample_data"
 def recon_cli(*args: str, check: bool = True, timeout: float = 600, env=None) -> subprocess.CompletedProcess:
     """Run the real `recon` command in a subprocess (as a user or CI would)."""
     full_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
-    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args], check=False,
+                          capture_output=True, text=True,
                           timeout=timeout, env=full_env, cwd=REPO)
     if check and proc.returncode != 0:
         raise AssertionError(f"recon {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")

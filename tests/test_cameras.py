@@ -108,8 +108,8 @@ def test_resized_pixel_centres_are_the_centres_of_the_pixel_blocks():
     K = intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (500.0, 520.0, 311.3, 205.7)))
     cams = Cameras(K[None], torch.eye(4, dtype=torch.float64)[None], torch.tensor([640]), torch.tensor([480]))
     level = cams.resized(160, 120)  # K = 4
-    o_l, d_l, _ = camera_rays(level, 0)  # (120, 160, 3)
-    o_f, d_f, _ = camera_rays(cams, 0)
+    _, d_l, _ = camera_rays(level, 0)  # (120, 160, 3)
+    _, d_f, _ = camera_rays(cams, 0)
     # the block of level pixel (row 7, col 11) is full rows 28-31, cols 44-47, i.e. [44, 48) x
     # [28, 32) in edge coordinates: its centre is u = 46, v = 30 (the corner of 4 full pixels)
     uv = torch.tensor([[46.0, 30.0]], dtype=torch.float64)

@@ -38,7 +38,7 @@ def test_grid_prune_and_upsample_preserve_the_field():
     keep = grid.data["density"][:, 0] > 0.5
     grid.prune(keep)
     assert grid.num_rows == int(keep.sum())
-    a, b = grid.neighbour_pairs(torch.arange(grid.num_rows))
+    _, b = grid.neighbour_pairs(torch.arange(grid.num_rows))
     assert torch.all(grid.links[grid.coords[b]] == b)
 
 

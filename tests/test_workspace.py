@@ -80,9 +80,8 @@ def test_second_writer_fails_fast(tmp_path):
     p.start()
     try:
         assert ready.wait(10)
-        with pytest.raises(WorkspaceError, match="another recon process"):
-            with ws.writer_lock("sfm"):
-                pass
+        with pytest.raises(WorkspaceError, match="another recon process"), ws.writer_lock("sfm"):
+            pass
         with ws.writer_lock("run-other"):  # other scopes are independent
             pass
     finally:

@@ -42,7 +42,7 @@ def gaussians_to_world(g: dict[str, np.ndarray], scale: float, R: np.ndarray, t:
     """g: means (G,3), quats (G,4) wxyz, log_scales (G,3), opacity_logits (G,), sh (G,K,3), all
     in the scene frame -> the same attributes in the world frame."""
     K = g["sh"].shape[1]
-    degree = int(round(np.sqrt(K))) - 1
+    degree = round(float(np.sqrt(K))) - 1
     sh = g["sh"].copy()
     for l, D in enumerate(sh_rotation_blocks(R, degree)):
         sl = slice(l * l, (l + 1) * (l + 1))

@@ -17,7 +17,6 @@ an L1 loss, so a coarse level can read somewhat higher. The coarse levels are sh
 
 from __future__ import annotations
 
-
 MIN_SIDE = 64  # a coarse level keeps at least this many pixels on the image's shorter side
 
 

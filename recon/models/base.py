@@ -66,7 +66,7 @@ class TrainData:
 
             from recon.io.images import resize_area
 
-            C, H, W, _ = self.images.shape
+            _, H, W, _ = self.images.shape
             w, h = max(1, W // factor), max(1, H // factor)
             small = np.stack([resize_area(im, w, h) for im in self.images.cpu().numpy()])
             self._levels[factor] = TrainData(torch.from_numpy(small).to(self.images.device),
@@ -84,11 +84,11 @@ class TrainData:
                 self.cameras.world_from_cam[:, None, None].float(),
             )
             cam = torch.arange(C, device=self.images.device)[:, None, None].expand(C, H, W)
-            self._rays = dict(
-                origins=o.reshape(-1, 3).contiguous(), directions=d.reshape(-1, 3).contiguous(),
-                z_per_t=z.expand(C, H, W).reshape(-1).contiguous(),
-                rgb=self.images.reshape(-1, 3), camera=cam.reshape(-1),
-            )
+            self._rays = {
+                "origins": o.reshape(-1, 3).contiguous(), "directions": d.reshape(-1, 3).contiguous(),
+                "z_per_t": z.expand(C, H, W).reshape(-1).contiguous(),
+                "rgb": self.images.reshape(-1, 3), "camera": cam.reshape(-1),
+            }
         return self._rays
 
 

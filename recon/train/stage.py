@@ -45,7 +45,7 @@ class LearningRateScale:
         self.scale = 1.0
         self._handles = []
 
-    def __enter__(self) -> LearningRateScale:
+    def __enter__(self) -> LearningRateScale:  # noqa: PYI034
         from torch.optim.optimizer import (
             register_optimizer_step_post_hook,
             register_optimizer_step_pre_hook,
@@ -242,7 +242,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         run_doc = {**json.loads(ws.run_json(run).read_text()), "status": "running"}
         log_fn(f"resumed run '{run}' from step {st.step} ({st.wall_s:.0f} s of training)")
     atomic_write_json(ws.run_json(run), run_doc)
-    log_file = open(log_path, "a")
+    log_file = open(log_path, "a")  # noqa: SIM115 (closed in the finally below)
 
     def log(entry: dict) -> None:
         log_file.write(json.dumps(entry) + "\n")

@@ -75,7 +75,7 @@ def _march_ray(r, o, d, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, o
     if not t_max > t_min:
         return 0
     s_min, s_max = _warp(t_min, step, cone, t_far), _warp(t_max, step, cone, t_far)
-    count = int(math.ceil(max(s_max - s_min + u, 0.0)))
+    count = int(math.ceil(max(s_max - s_min + u, 0.0)))  # noqa: RUF046 (numba typing)
     count = max(count, 1)
     n = 0
     for k in range(count):

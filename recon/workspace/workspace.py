@@ -221,7 +221,7 @@ class Workspace:
         """
         lock_dir = self.root / ".locks"
         lock_dir.mkdir(parents=True, exist_ok=True)
-        f = open(lock_dir / f"{scope}.lock", "a+")
+        f = open(lock_dir / f"{scope}.lock", "a+")  # noqa: SIM115 (held until release)
         try:
             fcntl.flock(f, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
         except OSError as e:
