@@ -17,6 +17,8 @@ A camera gets one update per pass over the views and needs tens of them (alone a
 scene, r_023 took ~125 Adam steps at 3e-4 to reach 0.04 deg), so the pose lr only decays in the
 second half of lr_decay_steps: decayed from the start over a fitted 800-step run
 (schedule_steps 800), r_033 came back only 1.4x / 2.1x, 4.0x / 5.5x with the late decay.
+It is off by default: on lego-200, whose poses are exact, the cameras wander ~0.07 deg (a third
+of a pixel) and 5,400 steps end at 31.5 dB against 32.8 dB without; fox gains nothing either.
 """
 
 from __future__ import annotations
