@@ -137,7 +137,7 @@ def _psnr_at(curve: list, t: float) -> float | None:
 @click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
 @click.option("--reuse", is_flag=True, help="Reuse per-method results of an interrupted benchmark (partial/).")
 def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse: bool) -> None:
-    from recon.train.stage import import_methods
+    from recon.models.registry import import_methods
 
     available = import_methods()
     date = dt.date.today().isoformat()

@@ -77,15 +77,15 @@ def sphere_scene(n_cams: int = 8, size: int = 24, radius: float = 0.5):
 
     from recon.cameras import Cameras, camera_rays
     from recon.cameras.cameras import invert_rigid
+    from recon.cameras.look_at import look_at
     from recon.models.base import SceneInfo, TrainData
-    from recon.render.paths import look_at
 
     angles = torch.linspace(0, 2 * np.pi, n_cams + 1)[:-1]
     eye = torch.stack([1.6 * torch.cos(angles), 1.6 * torch.sin(angles), 0.6 * torch.ones(n_cams)], -1)
-    c2w = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0, 1]))
+    cam_from_world = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0, 1]))
     f = size * 1.2
     K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]]).expand(n_cams, 3, 3).clone()
-    cams = Cameras(K, c2w, torch.full((n_cams,), size), torch.full((n_cams,), size))
+    cams = Cameras(K, cam_from_world, torch.full((n_cams,), size), torch.full((n_cams,), size))
     images = []
     for i in range(n_cams):
         o, d, _ = camera_rays(cams, i)

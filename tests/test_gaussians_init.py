@@ -8,7 +8,6 @@ import torch
 
 from recon.cameras import Cameras
 from recon.fields.sh import C0
-from recon.gaussians.bench import orbit_cameras
 from recon.gaussians.init import (
     gaussians_from_points,
     image_colors,
@@ -17,8 +16,9 @@ from recon.gaussians.init import (
     sample_in_hull,
     sample_in_shell,
 )
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.models.base import SceneInfo, TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.synthetic.splats import orbit_cameras
 
 
 def test_knn_scale_worked_example():

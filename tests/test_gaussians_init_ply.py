@@ -5,13 +5,13 @@ import numpy as np
 import torch
 
 from recon.cameras.conventions import rotation_from_quat_wxyz
-from recon.export.splat import gaussians_to_world
-from recon.gaussians.bench import orbit_cameras, shell_gaussians
+from recon.cameras.similarity import Similarity
 from recon.gaussians.init import gaussians_from_splat_ply, sh_degree_in_use
-from recon.gaussians.model import GaussianModel, GaussiansConfig
 from recon.gaussians.ply import write_splat_ply
+from recon.gaussians.transform import gaussians_to_world
 from recon.models.base import SceneInfo
-from recon.sfm.normalize import Similarity
+from recon.models.splatting import GaussianModel, GaussiansConfig
+from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
 
 def _similarity(seed: int = 3) -> Similarity:

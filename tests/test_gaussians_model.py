@@ -8,28 +8,22 @@ import numpy as np
 import torch
 
 from recon.cameras import Cameras
+from recon.cameras.look_at import look_at
 from recon.fields.sh import C0
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgb, project_splats
 from recon.models.base import METHODS, SceneInfo, TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
 from recon.train.config import field_help
 
 
-def look_at(eye):
+def look_at_origin(eye):
     """OpenCV cam_from_world looking at the origin with world z up."""
     eye = torch.tensor(eye, dtype=torch.float64)
-    forward = -eye / eye.norm()
-    right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    right = right / right.norm()
-    down = torch.linalg.cross(forward, right)
-    cfw = torch.eye(4, dtype=torch.float64)
-    cfw[:3, :3] = torch.stack([right, down, forward])
-    cfw[:3, 3] = -cfw[:3, :3] @ eye
-    return cfw
+    return look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0]))
 
 
 def ring(n=8, size=32, radius=3.0):
-    cfw = torch.stack([look_at((radius * math.cos(2 * math.pi * i / n),
+    cfw = torch.stack([look_at_origin((radius * math.cos(2 * math.pi * i / n),
                                 radius * math.sin(2 * math.pi * i / n), 0.7 * math.sin(i)))
                        for i in range(n)])
     K = torch.tensor([[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]],
@@ -143,7 +137,7 @@ def test_registered_with_flat_documented_config():
 
 
 def test_fit_schedules_worked_example():
-    from recon.gaussians.model import fit_schedules
+    from recon.models.splatting import fit_schedules
 
     fast = GaussiansConfig(**PRESETS["fast"])
     fitted = fit_schedules(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}))
@@ -209,7 +203,7 @@ def test_appearance_learns_per_image_exposure_and_renders_with_the_nearest_corre
 
 
 def test_appearance_auto_follows_the_kind_of_scene():
-    from recon.gaussians.model import uses_appearance
+    from recon.models.splatting import uses_appearance
 
     scene, _ = synthetic_scene()
     cfg = config(appearance="auto")

@@ -4,6 +4,7 @@ import torch
 
 from recon.cameras import Cameras, camera_rays
 from recon.cameras.cameras import intrinsics_matrix
+from recon.cameras.look_at import look_at
 from recon.mesh.marching_cubes import grid_slabs
 from recon.mesh.tsdf import (
     TSDFConfig,
@@ -20,18 +21,6 @@ RADIUS = 0.5
 AABB = np.array([[-0.8, -0.8, -0.8], [0.9, 0.8, 0.85]])
 
 
-def _look_at(eye: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """OpenCV cam_from_world (4, 4): z toward the target, y down (world z is up)."""
-    z = (target - eye) / (target - eye).norm()
-    x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=eye.dtype))
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    out = torch.eye(4, dtype=eye.dtype)
-    out[:3, :3], out[:3, 3] = R, -R @ eye
-    return out
-
-
 def _cube_corner_cameras(size: int = 96, distance: float = 2.2) -> Cameras:
     corners = torch.tensor(
         [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64
@@ -41,7 +30,7 @@ def _cube_corner_cameras(size: int = 96, distance: float = 2.2) -> Cameras:
     c = torch.full((8,), size / 2, dtype=torch.float64)
     n = torch.full((8,), size, dtype=torch.int64)
     return Cameras(
-        intrinsics_matrix(f, f, c, c), torch.stack([_look_at(e, CENTER) for e in eyes]), n, n
+        intrinsics_matrix(f, f, c, c), torch.stack([look_at(e, CENTER, torch.tensor([0.0, 0.0, 1.0])) for e in eyes]), n, n
     )
 
 

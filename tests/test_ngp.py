@@ -9,6 +9,7 @@ import torch
 
 from recon.cameras import Cameras
 from recon.cameras.cameras import intrinsics_matrix
+from recon.cameras.look_at import look_at
 from recon.cameras.rays import camera_rays
 from recon.models.base import METHODS, SceneInfo, TrainData
 from recon.models.ngp import PRESETS, NGPConfig, NGPModel, uses_distortion
@@ -16,16 +17,9 @@ from recon.models.ngp import PRESETS, NGPConfig, NGPModel, uses_distortion
 RADIUS = 0.5
 
 
-def look_at(eye: torch.Tensor) -> torch.Tensor:
+def look_at_origin(eye: torch.Tensor) -> torch.Tensor:
     """OpenCV cam_from_world of a camera at eye looking at the origin, world z up."""
-    z = -eye / eye.norm()
-    x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0]))
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    T = torch.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ eye
-    return T
+    return look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
 
 
 def ring_cameras(n: int, size: int, radius: float = 2.5, elevation: float = 0.4) -> Cameras:
@@ -35,7 +29,7 @@ def ring_cameras(n: int, size: int, radius: float = 2.5, elevation: float = 0.4)
     f = torch.full((n,), 1.2 * size)
     K = intrinsics_matrix(f, f, torch.full((n,), size / 2), torch.full((n,), size / 2))
     wh = torch.full((n,), size, dtype=torch.int64)
-    return Cameras(K, torch.stack([look_at(e) for e in eyes]), wh, wh)
+    return Cameras(K, torch.stack([look_at_origin(e) for e in eyes]), wh, wh)
 
 
 def sphere_images(cameras: Cameras, background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -18,10 +18,10 @@ from recon.cameras.pose_refine import (
     pivot_depths,
 )
 from recon.cameras.se3 import se3_exp, se3_log, so3_exp
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgbd, project_splats
 from recon.metrics.pose import rotation_angle_deg
 from recon.models.base import TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
 from recon.workspace import Workspace
 from recon.workspace.scene import load_scene, load_train_data
 from tests.conftest import SAMPLE_DATA, recon_cli

@@ -3,7 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from recon.sfm.normalize import Similarity, normalize_scene, rotation_between
+from recon.cameras.similarity import Similarity
+from recon.sfm.normalize import normalize_scene, rotation_between
 from recon.sfm.sources import SourceError, holdout_split, read_colmap, read_transforms
 from tests.conftest import recon_cli
 

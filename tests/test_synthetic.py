@@ -17,6 +17,7 @@ import trimesh
 from recon.cameras import project_points
 from recon.cameras.cameras import intrinsics_matrix
 from recon.cameras.conventions import opencv_c2w_from_opengl_c2w, rotation_from_quat_wxyz
+from recon.cameras.look_at import look_at
 from recon.io.exr import read_depth_exr
 from recon.synthetic.raster import (
     front_facing,
@@ -31,7 +32,6 @@ from recon.synthetic.scene import (
     _contrasting,
     albedo,
     build_scene,
-    look_at,
     make_texture,
     render_view,
     ring_cameras,

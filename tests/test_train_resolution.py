@@ -66,7 +66,7 @@ def test_downscale_for_max_side():
 
 def test_every_method_keeps_lego_200_at_its_size_under_the_protocol_budgets():
     """The lego-200 protocol (100 views of 200 x 200; 600 s, nerf 1800 s) trains at full size."""
-    from recon.train.stage import import_methods
+    from recon.models.registry import import_methods
 
     budgets = {"nerf": 1800}
     for name, spec in import_methods().items():

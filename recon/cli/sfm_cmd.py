@@ -20,7 +20,7 @@ from recon.workspace import Workspace
 def new_or_existing_workspace(root: Path):
     """Open/create the workspace; if this command created it and then fails, remove it again,
     so a failed first command leaves the disk as it was."""
-    existed = (root / "workspace.json").exists()
+    existed = (root / Workspace.JSON_NAME).exists()
     root_existed = root.exists()
     ws = Workspace.create(root)
     try:
@@ -28,7 +28,7 @@ def new_or_existing_workspace(root: Path):
     except BaseException:
         if not existed:
             if root_existed:
-                (root / "workspace.json").unlink(missing_ok=True)
+                (root / Workspace.JSON_NAME).unlink(missing_ok=True)
                 shutil.rmtree(root / ".locks", ignore_errors=True)
             else:
                 shutil.rmtree(root, ignore_errors=True)

@@ -9,15 +9,14 @@ import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
 from recon.cli.progress import Progress
+from recon.models.registry import METHOD_NAMES, method_spec
 from recon.train.config import TrainConfig, field_help
-from recon.train.stage import import_methods, train
+from recon.train.stage import train
 from recon.workspace import Workspace
-
-METHOD_NAMES = ["nerf", "ngp", "plenoxel", "3dgs"]  # imported lazily: `recon --help` stays fast
 
 
 def _list_options(method: str) -> str:
-    spec = import_methods()[method]
+    spec = method_spec(method)
     helps = field_help(spec.config_cls)
     lines = [f"options of --method {method} (set with --set KEY=VALUE); presets: {', '.join(spec.presets)}"]
     for f in dataclasses.fields(spec.config_cls):
@@ -65,19 +64,17 @@ def command(workspace, method, run, preset, steps, time_budget, max_side, downsc
     Without --steps, --time-budget or --patience the method's own step count applies.
     Ctrl-C saves a checkpoint; `--resume` continues from it.
     """
-    if method not in import_methods():
-        raise click.UsageError(f"method {method} is not part of this build")
+    spec = method_spec(method)
     if list_options:
         click.echo(_list_options(method))
         return
     if max_side and downscale:
         raise click.UsageError("give --max-side or --downscale, not both")
     if init_ply is not None:
-        if method != "3dgs":
-            raise click.UsageError("--init-from-ply is for --method 3dgs")
+        if not spec.starts_from_splats:
+            raise click.UsageError(f"--init-from-ply is for methods that start from splats (3dgs), not {method}")
         overrides = (*overrides, f"init_ply={init_ply.resolve()}")
     ws = Workspace.open(workspace)
-    spec = import_methods()[method]
     if not (steps or time_budget or patience):
         steps = int(getattr(spec.config_cls(**spec.presets.get(preset, {})), "default_steps", 0)) or 0
         if not steps:

@@ -17,10 +17,11 @@ from recon.eval.report import write_report
 from recon.eval.speed import read_log, speed_metrics
 from recon.io.exr import read_depth_exr
 from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
+from recon.models.registry import pick_device
 from recon.render.views import render_view
 from recon.train.resolution import output_levels
-from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+from recon.workspace.runs import load_run
 from recon.workspace.scene import level_size
 
 
@@ -43,7 +44,7 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
     from recon.metrics.lpips import lpips
     from recon.workspace.scene import load_images
 
-    model, scene, run_doc = load_model(ws, run, device)
+    model, scene, run_doc = load_run(ws, run, device)
     idx = scene.split(cfg.split)[:: cfg.every]
     if not idx:
         raise WorkspaceError(f"the scene has no '{cfg.split}' views to evaluate")
@@ -136,10 +137,10 @@ def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = Fals
     from recon.metrics.lpips import NETWORK, load_lpips
     from recon.workspace.scene import load_scene
 
-    runs = runs or [r for r in ws.runs() if model_path(ws, r).exists()]
+    runs = runs or [r for r in ws.runs() if ws.model_path(r).exists()]
     if not runs and cfg.gt_poses:  # the sfm stage alone: pose accuracy, before any training
         poses = pose_section(ws, cfg)
-        atomic_write_json(ws.sfm_dir / "pose_accuracy.json", poses)
+        atomic_write_json(ws.pose_accuracy_json, poses)
         return {"sfm": {"pose": poses}}
     if not runs:
         raise WorkspaceError(f"no trained run in {ws.root}: run `recon train` first "
@@ -159,9 +160,9 @@ def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = Fals
                    "geometry": geometry_section(ws, run, cfg, scene.gt_mesh, scene),
                    "pose": poses, "speed": speed_metrics(run_doc, log)}
         metrics = _finite(metrics)
-        atomic_write_json(ws.eval_dir(run) / "metrics.json", metrics)
-        ws.record_stage(f"eval/{run}", config=asdict(cfg), inputs={"model": model_path(ws, run)},
-                        outputs={"metrics": ws.eval_dir(run) / "metrics.json"}, upstream=[f"train/{run}"],
+        atomic_write_json(ws.metrics_json(run), metrics)
+        ws.record_stage(f"eval/{run}", config=asdict(cfg), inputs={"model": ws.model_path(run)},
+                        outputs={"metrics": ws.metrics_json(run)}, upstream=[f"train/{run}"],
                         started=started, ended=time.time())
         results[run] = metrics
         if progress:
@@ -180,7 +181,7 @@ def _run_doc(ws: Workspace, run: str) -> dict:
 def _load_metrics(ws: Workspace, run: str) -> dict | None:
     import json
 
-    p = ws.eval_dir(run) / "metrics.json"
+    p = ws.metrics_json(run)
     return json.loads(p.read_text()) if p.exists() else None
 
 

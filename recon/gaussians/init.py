@@ -152,7 +152,7 @@ def gaussians_from_splat_ply(path, scene_from_world, sh_degree: int) -> tuple[di
     uses (capped at sh_degree). The inverse of `export.splat.gaussians_to_world`, which it is:
     that function with the inverse similarity (1/s, R^T, -R^T t / s) (means, log-scales - ln(1/s),
     rotations R q, SH rotated per degree). SH above sh_degree are dropped."""
-    from recon.export.splat import gaussians_to_world
+    from recon.gaussians.transform import gaussians_to_world
 
     g = read_splat_ply(path)
     s, R, t = float(scene_from_world.scale), np.asarray(scene_from_world.R, float), np.asarray(scene_from_world.t, float)

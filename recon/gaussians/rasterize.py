@@ -29,6 +29,7 @@ from numba import prange
 from torch import Tensor
 from torch.profiler import record_function
 
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, bin_gaussians, tile_bounds
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
@@ -38,9 +39,6 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
     # Takes effect only if no numba parallel region has run yet in this process.
     numba.config.THREADING_LAYER = "workqueue"
 
-ALPHA_MAX = 0.99  # keeps 1 - alpha away from 0 so the backward can divide by it
-ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
-T_MIN = 1e-4  # early termination: a pixel stops before T would fall below this
 SLACK = 1e-3  # relative widening of the alpha >= 1/255 ellipse used to skip pixels
 RECUR_MAX_A = 4.0  # conic x-curvatures up to this use the exp recurrence (no overflow risk)
 FORWARD_CHUNKS = 64  # parallel work items of the forward, each a strided set of tiles

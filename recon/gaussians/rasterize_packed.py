@@ -16,7 +16,7 @@ import math
 import torch
 from torch import Tensor
 
-from recon.gaussians.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, bin_gaussians_sorted, tile_bounds, tile_grid
 
 

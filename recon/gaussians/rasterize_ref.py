@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from recon.cameras.rays import pixel_centers
-from recon.gaussians.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, tile_bounds
 
 

@@ -20,9 +20,10 @@ from recon.mesh.marching_cubes import (
     soft_field_threshold,
 )
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
+from recon.models.registry import pick_device
 from recon.train.resolution import trained_resolution
-from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+from recon.workspace.runs import load_run
 
 
 @dataclass(frozen=True)
@@ -35,14 +36,6 @@ class MeshConfig:
     min_component: float = 0.02  # components with fewer faces than this fraction are removed
     format: str = "ply"  # ply | obj | glb
     device: str = "auto"  # auto | cpu | cuda
-
-
-def _has_density(model) -> bool:
-    try:
-        model.density(torch.zeros(1, 3, device=next(iter(model.buffers())).device))
-        return True
-    except NotImplementedError:
-        return False
 
 
 def rendered_surface_density(model, scene, cfg: MeshConfig, device, downscale: int = 1) -> np.ndarray:
@@ -67,15 +60,15 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     key = f"train/{run}"
     ws.require_fresh(key, force)
     device = pick_device(cfg.device)
-    model, scene, run_doc = load_model(ws, run, device)
+    model, scene, run_doc = load_run(ws, run, device)
     level = trained_resolution(run_doc, scene).downscale  # views are rendered at the training size
     aabb = scene.info.aabb.to(device)
     method = cfg.method
     if method == "auto":
-        method = "marching-cubes" if _has_density(model) else "tsdf"
+        method = "marching-cubes" if model.has_density else "tsdf"
     started = time.time()
     if method == "marching-cubes":
-        if not _has_density(model):
+        if not model.has_density:
             raise WorkspaceError(f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf")
         side = float((aabb[1] - aabb[0]).max())
         threshold = cfg.threshold or soft_field_threshold(
@@ -114,13 +107,13 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     result = {"run": run, "method": method, "path": str(out_path), "faces_before_cleanup": raw_faces,
               **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
               "seconds": round(time.time() - started, 2), **detail}
-    atomic_write_json(ws.mesh_dir(run) / "mesh.json", result)
-    ws.record_stage(f"mesh/{run}", config=asdict(cfg), inputs={"model": model_path(ws, run)},
+    atomic_write_json(ws.mesh_json(run), result)
+    ws.record_stage(f"mesh/{run}", config=asdict(cfg), inputs={"model": ws.model_path(run)},
                     outputs={"mesh": out_path}, upstream=[key], started=started, ended=time.time(),
                     extra={"faces": result.get("faces")})
     return result
 
 
 def read_mesh_json(ws: Workspace, run: str) -> dict | None:
-    p = ws.mesh_dir(run) / "mesh.json"
+    p = ws.mesh_json(run)
     return json.loads(p.read_text()) if p.exists() else None

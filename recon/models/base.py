@@ -36,7 +36,7 @@ class SceneInfo:
     far: float
     points: Tensor | None = None
     point_colors: Tensor | None = None
-    scene_from_world: object | None = None  # sfm.normalize.Similarity, x_scene = s R x_world + t
+    scene_from_world: object | None = None  # cameras.similarity.Similarity, x_scene = s R x_world + t
 
 
 @dataclass
@@ -99,7 +99,13 @@ class Model(nn.Module):
     code stays a plain loop; it returns scalars for the log (at least "loss").
     `render` returns, for ONE camera, "rgb" (H, W, 3), "depth" (H, W) as z-depth along the
     optical axis in normalized units, and "acc" (H, W) accumulated opacity.
+
+    What a model can do beyond that it declares in the capability flags below; stages ask them
+    (a mesh from the density field, a splat export) instead of testing a method's name.
     """
+
+    has_density: bool = False  # `density(points)` is defined: marching cubes on the field
+    exports_splats: bool = False  # `splats()` returns its Gaussians (the splat PLY export)
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         raise NotImplementedError
@@ -109,7 +115,12 @@ class Model(nn.Module):
         raise NotImplementedError
 
     def density(self, points: Tensor) -> Tensor:
-        """Volume density sigma (N,) at normalized points (N, 3); volume methods only."""
+        """Volume density sigma (N,) at normalized points (N, 3); models with `has_density`."""
+        raise NotImplementedError
+
+    def splats(self) -> dict:
+        """The Gaussians as numpy arrays in the scene frame (means (G, 3), quats wxyz (G, 4),
+        log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)); models with `exports_splats`."""
         raise NotImplementedError
 
     def training_state(self) -> dict:
@@ -151,6 +162,7 @@ class MethodSpec:
     build: Callable  # (config, scene: SceneInfo) -> Model
     presets: dict  # preset name -> {field: value} overrides of the config defaults
     resolution: ResolutionPolicy = ResolutionPolicy()  # how the working resolution is chosen
+    starts_from_splats: bool = False  # its config takes `init_ply`: a splat PLY to start from
 
 
 METHODS: dict[str, MethodSpec] = {}

@@ -149,6 +149,8 @@ class NeRFMLP(nn.Module):
 
 
 class NeRFModel(Model):
+    has_density = True
+
     def __init__(self, cfg: NeRFConfig, scene: SceneInfo):
         super().__init__()
         if cfg.density_activation not in ("relu", "softplus"):

@@ -129,6 +129,8 @@ def uses_distortion(mode: str, unbounded: bool) -> bool:
 
 
 class NGPModel(Model):
+    has_density = True
+
     def __init__(self, cfg: NGPConfig, scene: SceneInfo):
         super().__init__()
         self.cfg, self.scene = cfg, scene

@@ -53,6 +53,8 @@ class PlenoxelConfig:
 
 
 class PlenoxelModel(Model):
+    has_density = True
+
     def __init__(self, cfg: PlenoxelConfig, scene: SceneInfo):
         super().__init__()
         self.cfg, self.scene = cfg, scene

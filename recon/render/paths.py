@@ -8,23 +8,7 @@ import torch
 from torch import Tensor
 
 from recon.cameras.cameras import invert_rigid
-
-
-def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
-    """OpenCV camera at `eye` (P, 3) looking at `target` (3,) with world `up` -> cam_from_world (P, 4, 4).
-
-    z (forward) = target - eye, x (right) = z x up, y (down) = z x x.
-    """
-    z = torch.nn.functional.normalize(target - eye, dim=-1)
-    x = torch.linalg.cross(z, up.expand_as(z), dim=-1)
-    bad = x.norm(dim=-1) < 1e-6  # looking straight along up: pick any right vector
-    x[bad] = torch.linalg.cross(z[bad], torch.tensor([1.0, 0, 0], dtype=z.dtype).expand_as(z[bad]), dim=-1)
-    x = torch.nn.functional.normalize(x, dim=-1)
-    y = torch.linalg.cross(z, x, dim=-1)
-    world_from_cam = torch.eye(4, dtype=eye.dtype).repeat(eye.shape[0], 1, 1)
-    world_from_cam[:, :3, 0], world_from_cam[:, :3, 1], world_from_cam[:, :3, 2] = x, y, z
-    world_from_cam[:, :3, 3] = eye
-    return invert_rigid(world_from_cam)
+from recon.cameras.look_at import look_at
 
 
 def orbit_path(centers: Tensor, target: Tensor, frames: int) -> Tensor:

@@ -13,11 +13,12 @@ import torch
 from recon.cameras.cameras import Cameras
 from recon.io.exr import write_depth_exr
 from recon.io.images import to_uint8, write_png
+from recon.models.registry import pick_device
 from recon.render.paths import interpolate_path, orbit_path, spiral_path
 from recon.render.views import render_view
 from recon.train.resolution import output_levels
-from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
+from recon.workspace.runs import load_run
 from recon.workspace.scene import level_size
 
 
@@ -59,7 +60,7 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
     key = f"train/{run}"
     ws.require_fresh(key, force)
     device = pick_device(cfg.device)
-    model, scene, run_doc = load_model(ws, run, device)
+    model, scene, run_doc = load_run(ws, run, device)
     k_out, k_render = output_levels(scene, run_doc, cfg.max_side, cfg.downscale)
     if cfg.path:
         cams, names = path_cameras(scene, cfg.path, cfg.frames, device, k_render)
@@ -95,15 +96,15 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
         if progress:
             progress("render", i + 1, len(cams), ms_per_frame=round(1000 * np.mean(times), 1))
     if cfg.video:
-        write_video(out_dir / "video.mp4", frames_rgb, cfg.fps)
+        write_video(ws.render_video(run, target), frames_rgb, cfg.fps)
     result = {"run": run, "target": target, "frames": len(cams), "out": str(out_dir),
               "ms_per_frame": round(1000 * float(np.mean(times)), 2),
               "ms_per_frame_median": round(1000 * float(np.median(times)), 2),
               "resolution": list(sizes[0]), "downscale": k_out,
               "rendered_at": {"downscale": k_render, "size": [int(cams.width[0]), int(cams.height[0])]},
               "device": str(device)}
-    atomic_write_json(out_dir / "render.json", result)
-    ws.record_stage(f"render/{run}/{target}", config=cfg.__dict__, inputs={"model": model_path(ws, run)},
+    atomic_write_json(ws.render_json(run, target), result)
+    ws.record_stage(f"render/{run}/{target}", config=cfg.__dict__, inputs={"model": ws.model_path(run)},
                     outputs={"renders": out_dir}, upstream=[key], started=started, ended=time.time(),
                     extra={"ms_per_frame": result["ms_per_frame"]})
     return result
@@ -123,5 +124,5 @@ def write_video(path, frames: list[np.ndarray], fps: int) -> None:
 
 
 def read_render_json(ws: Workspace, run: str, target: str) -> dict | None:
-    p = ws.renders_dir(run, target) / "render.json"
+    p = ws.render_json(run, target)
     return json.loads(p.read_text()) if p.exists() else None

@@ -19,6 +19,7 @@ from torch import Tensor
 from recon.cameras import Cameras
 from recon.cameras.cameras import intrinsics_matrix
 from recon.cameras.conventions import rotation_from_quat_wxyz
+from recon.cameras.look_at import look_at
 from recon.synthetic.raster import front_facing, interpolate, rasterize
 
 PART_NAMES = ("plate", "box", "ellipsoid", "torus")
@@ -243,19 +244,6 @@ def render_view(
     alpha = hit.double().view(h, s, w, s).mean((1, 3))
     rgb = torch.where(alpha[..., None] > 0, premultiplied / alpha.clamp_min(1e-12)[..., None], 1.0)
     return torch.cat([rgb, alpha[..., None]], -1), frags.depth[s // 2 :: s, s // 2 :: s]
-
-
-def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
-    """OpenCV cam_from_world (4, 4) of a camera at `eye` whose optical axis (z) points at
-    `target` and whose image 'up' (-y) is as close to `up` as possible."""
-    z = (target - eye) / (target - eye).norm()
-    x = torch.linalg.cross(z, up)
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
-    cam_from_world = torch.eye(4, dtype=eye.dtype)
-    cam_from_world[:3, :3], cam_from_world[:3, 3] = R, -R @ eye
-    return cam_from_world
 
 
 def ring_cameras(

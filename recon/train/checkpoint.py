@@ -3,22 +3,13 @@ or half-written file is detected and resume falls back to the previous one."""
 
 from __future__ import annotations
 
-import io
 import json
 from pathlib import Path
 
 import torch
 
-from recon.workspace.atomic import atomic_write_bytes, atomic_write_json
+from recon.io.atomic import atomic_write_json, save_torch
 from recon.workspace.hashing import hash_file
-
-
-def save_torch(payload: dict, path: Path) -> None:
-    """torch.save, atomically. Serialised in memory first: torch's own file writer turns a full
-    disk into an opaque "unexpected pos" RuntimeError, a plain write gives the real OSError."""
-    buffer = io.BytesIO()
-    torch.save(payload, buffer)
-    atomic_write_bytes(path, buffer.getbuffer())
 
 
 def save_checkpoint(directory: Path, step: int, payload: dict, keep: int) -> Path:

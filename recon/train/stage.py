@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from recon.models.base import METHODS, MethodSpec
-from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint, save_torch
+from recon.models.registry import config_from_json, import_methods, pick_device, save_model
+from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
 from recon.train.resolution import (
@@ -30,7 +30,6 @@ from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
 from recon.workspace.workspace import software_versions
 
-MODEL_FILE = "model.pt"
 MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
 ROLLBACK_LR_FACTOR = 0.5  # every rollback halves all learning rates for the rest of the process
 
@@ -66,28 +65,6 @@ class LearningRateScale:
             h.remove()
 
 
-def import_methods() -> dict[str, MethodSpec]:
-    """Import every method module so it registers itself; missing ones are simply absent."""
-    import importlib
-
-    for module in ("recon.models.nerf", "recon.models.ngp", "recon.models.plenoxel",
-                   "recon.gaussians.model"):
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            if not module.startswith(e.name or "\0"):
-                raise
-    return METHODS
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise WorkspaceError("--device cuda was asked for but no CUDA device is available")
-    return torch.device(name)
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -100,42 +77,6 @@ def heldout_views(scene: Scene, n: int) -> list[int]:
         return []
     pick = np.linspace(0, len(test) - 1, min(n, len(test))).round().astype(int)
     return [test[i] for i in sorted(set(pick.tolist()))]
-
-
-def model_path(ws: Workspace, run: str) -> Path:
-    return ws.run_dir(run) / MODEL_FILE
-
-
-def save_model(ws: Workspace, run: str, method: str, method_cfg: dict, model) -> Path:
-    path = model_path(ws, run)
-    save_torch({"method": method, "config": method_cfg, "state_dict": model.state_dict()}, path)
-    return path
-
-
-def load_model(ws: Workspace, run: str, device="cpu"):
-    """Rebuild a trained model of a run -> (model, scene, run.json dict)."""
-    path = model_path(ws, run)
-    if not ws.run_json(run).exists():
-        raise WorkspaceError(f"run '{run}' does not exist in {ws.root} (runs: {', '.join(ws.runs()) or 'none'})")
-    if not path.exists():
-        raise WorkspaceError(f"run '{run}' has no finished model yet (train it or resume it)")
-    saved = torch.load(path, map_location="cpu", weights_only=True)
-    spec = import_methods()[saved["method"]]
-    scene = load_scene(ws)
-    model = spec.build(spec.config_cls(**_tuples(spec.config_cls, saved["config"])), scene.info)
-    model.load_state_dict(saved["state_dict"])
-    model.to(device).eval()
-    return model, scene, json.loads(ws.run_json(run).read_text())
-
-
-def _tuples(cls, d: dict) -> dict:
-    import dataclasses
-
-    out = dict(d)
-    for f in dataclasses.fields(cls):
-        if isinstance(f.default, tuple) and isinstance(out.get(f.name), list):
-            out[f.name] = tuple(out[f.name])
-    return out
 
 
 def check_run(ws: Workspace, run: str, resume: bool, force: bool) -> bool:
@@ -178,7 +119,7 @@ def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resum
 def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progress) -> dict:
     if resume:
         saved = json.loads(ws.run_json(run).read_text())
-        method_cfg = spec.config_cls(**_tuples(spec.config_cls, saved["config"]))
+        method_cfg = spec.config_cls(**config_from_json(spec.config_cls, saved["config"]))
         train_fields = {f for f in TrainConfig.__dataclass_fields__}
         cfg = TrainConfig(**{**{k: v for k, v in saved["train"].items() if k in train_fields},
                              **{k: v for k, v in asdict(cfg).items()
@@ -308,17 +249,17 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     checkpoint(st)
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
     log_file.close()
-    save_model(ws, run, spec.name, asdict(method_cfg), model)
+    save_model(ws.model_path(run), spec.name, asdict(method_cfg), model)
     summary = {**run_doc, "status": "done", "stop_reason": reason, "steps": st.step,
                "train_wall_s": round(st.wall_s, 3), "elapsed_s": round(st.elapsed_s, 3),
                "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
                "model_stats": {k: float(v) for k, v in model.stats().items()},
-               "model_bytes": os.path.getsize(model_path(ws, run)),
+               "model_bytes": os.path.getsize(ws.model_path(run)),
                "device": str(device), "threads": torch.get_num_threads(),
                "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
     atomic_write_json(ws.run_json(run), summary)
     ws.record_stage(f"train/{run}", config={"train": asdict(cfg), "method": asdict(method_cfg)},
-                    inputs={"cameras": ws.cameras_json}, outputs={"model": model_path(ws, run)},
+                    inputs={"cameras": ws.cameras_json}, outputs={"model": ws.model_path(run)},
                     upstream=["sfm"], started=started, ended=time.time(),
                     extra={"stop_reason": reason, "steps": st.step})
     return summary

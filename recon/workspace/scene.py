@@ -11,11 +11,11 @@ import numpy as np
 import torch
 
 from recon.cameras.cameras import Cameras
+from recon.cameras.similarity import Similarity
+from recon.io.atomic import atomic_dir, atomic_write_json
 from recon.io.images import read_image, resize_area, write_png
 from recon.io.ply import read_points_ply
 from recon.models.base import SceneInfo, TrainData
-from recon.sfm.normalize import Similarity
-from recon.workspace.atomic import atomic_dir, atomic_write_json
 from recon.workspace.hashing import hash_file
 from recon.workspace.workspace import Workspace, WorkspaceError
 

@@ -26,7 +26,7 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 
 import recon
-from recon.workspace.atomic import atomic_write_json
+from recon.io.atomic import atomic_write_json
 from recon.workspace.hashing import hash_tree
 
 SCHEMA_VERSION = 1
@@ -91,9 +91,11 @@ class Workspace:
         ws.load()
         return ws
 
+    JSON_NAME = "workspace.json"  # the file that makes a directory a workspace
+
     @property
     def json_path(self) -> Path:
-        return self.root / "workspace.json"
+        return self.root / self.JSON_NAME
 
     def load(self) -> dict:
         try:
@@ -166,6 +168,10 @@ class Workspace:
     def run_json(self, run: str) -> Path:
         return self.run_dir(run) / "run.json"
 
+    def model_path(self, run: str) -> Path:
+        """The finished model of a run (`models.registry.save_model`)."""
+        return self.run_dir(run) / "model.pt"
+
     def log_jsonl(self, run: str) -> Path:
         return self.run_dir(run) / "log.jsonl"
 
@@ -175,14 +181,33 @@ class Workspace:
     def renders_dir(self, run: str, name: str) -> Path:
         return self.run_dir(run) / "renders" / name
 
+    def render_json(self, run: str, name: str) -> Path:
+        return self.renders_dir(run, name) / "render.json"
+
+    def render_video(self, run: str, name: str) -> Path:
+        return self.renders_dir(run, name) / "video.mp4"
+
     def mesh_dir(self, run: str) -> Path:
         return self.run_dir(run) / "mesh"
+
+    def mesh_json(self, run: str) -> Path:
+        return self.mesh_dir(run) / "mesh.json"
 
     def export_dir(self, run: str) -> Path:
         return self.run_dir(run) / "export"
 
+    def splat_ply(self, run: str) -> Path:
+        return self.export_dir(run) / "splat.ply"
+
     def eval_dir(self, run: str) -> Path:
         return self.run_dir(run) / "eval"
+
+    def metrics_json(self, run: str) -> Path:
+        return self.eval_dir(run) / "metrics.json"
+
+    @property
+    def pose_accuracy_json(self) -> Path:
+        return self.sfm_dir / "pose_accuracy.json"
 
     @property
     def report_md(self) -> Path:

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from recon.io.atomic import WriteError, atomic_dir
 from recon.train.checkpoint import save_checkpoint
-from recon.workspace.atomic import WriteError, atomic_dir
 from tests.conftest import REPO
 from tests.hard_cases.conftest import FAST_TRAIN, assert_one_line_error, snapshot
 

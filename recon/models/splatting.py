@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.profiler import record_function
@@ -196,6 +197,8 @@ class GaussianModel(Model):
     """G Gaussians as an `nn.ParameterDict` of (G, ...) tensors: means, quats (w, x, y, z),
     log_scales, opacity_logits, sh_dc (G, 1, 3), sh_rest (G, (degree+1)^2 - 1, 3)."""
 
+    exports_splats = True
+
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()
         self.config = config = fit_schedules(config)
@@ -250,9 +253,15 @@ class GaussianModel(Model):
         """The attribute tensors `render.project_splats` takes."""
         return dict(self.params.items())
 
+    def splats(self) -> dict:
+        p = {k: v.detach().cpu().numpy() for k, v in self.params.items()}
+        return {"means": p["means"], "quats": p["quats"], "log_scales": p["log_scales"],
+                "opacity_logits": p["opacity_logits"].reshape(-1),
+                "sh": np.concatenate([p["sh_dc"], p["sh_rest"]], axis=1)}
+
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         """One view, full resolution. The `3dgs.*` profiler labels split the step's time (see
-        `bench.py`)."""
+        pipelines/bench_gaussians.py)."""
         c = self.config
         extent = self._prepare_step(data, step)
         view = view_for_step(step, len(data), c.seed)
@@ -457,4 +466,4 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
 # one whole image a step at ~350k px/s (fox at 269 x 478: 1,624 steps in 600 s on 2 threads)
 RESOLUTION = ResolutionPolicy(pixels_per_s=350e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600)
 SPEC = register(MethodSpec(name="3dgs", config_cls=GaussiansConfig, build=build, presets=PRESETS,
-                           resolution=RESOLUTION))
+                           resolution=RESOLUTION, starts_from_splats=True))

@@ -1,4 +1,4 @@
-"""Gaussians in the normalized scene frame -> the original (world) frame, and the splat PLY.
+"""Gaussians in the normalized scene frame -> the original (world) frame.
 
 With x_scene = s R x_world + t: means_world = R^T (means - t) / s, log-scales - ln s,
 rotations R^T q, and the SH colour re-expressed for world directions: per degree l the real

@@ -2,8 +2,8 @@ import numpy as np
 import torch
 
 from recon.cameras.conventions import rotation_from_quat_wxyz
-from recon.export.splat import gaussians_to_world, quat_multiply, sh_rotation_blocks
 from recon.fields.sh import eval_sh
+from recon.gaussians.transform import gaussians_to_world, quat_multiply, sh_rotation_blocks
 
 
 def test_sh_rotation_is_exact_for_every_degree():

@@ -1,7 +1,7 @@
 """Speed benchmark of the 3dgs CPU path (a measurement, not a test: it asserts nothing).
 
-    python -m recon.gaussians.bench --gaussians 50000 --sizes 200 800 --out bench_3dgs.json
-    python -m recon.gaussians.bench --workspace WS --warmup 600 --steps 40   # a real scene
+    python pipelines/bench_gaussians.py --gaussians 50000 --sizes 200 800 --out bench_3dgs.json
+    python pipelines/bench_gaussians.py --workspace WS --warmup 600 --steps 40   # a real scene
 
 For each image size: render forward and forward+backward ms per frame (projection + SH +
 binning + rasterization), training steps/s of `GaussianModel.train_step` (SSIM loss, Adam, no
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import time
 
@@ -23,42 +22,13 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from recon.cameras import Cameras
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgb, composite_rgbd, project_splats
 from recon.models.base import SceneInfo, TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
 LABELS = ("project", "rasterize", "bin", "raster_forward", "loss", "backward", "raster_backward",
           "project_backward", "optimizer", "densify")
-
-
-def shell_gaussians(G: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """G Gaussians on a sphere shell with random orientations, colours and opacities."""
-    gen = torch.Generator().manual_seed(seed)
-    d = torch.randn(G, 3, generator=gen)
-    means = d / d.norm(dim=-1, keepdim=True) * (0.8 + 0.05 * torch.rand(G, 1, generator=gen))
-    spacing = math.sqrt(4 * math.pi * 0.8**2 / G)  # mean distance between neighbours
-    return {"means": means, "quats": torch.randn(G, 4, generator=gen),
-            "log_scales": torch.log(spacing * (0.5 + torch.rand(G, 3, generator=gen))),
-            "opacity_logits": torch.randn(G, generator=gen) + 1.0,
-            "sh_dc": torch.randn(G, 1, 3, generator=gen) * 0.5,
-            "sh_rest": torch.randn(G, 15, 3, generator=gen) * 0.05}
-
-
-def orbit_cameras(n: int, size: int, radius: float = 3.0) -> Cameras:
-    """n cameras on a circle around the origin, looking at it (OpenCV axes, world z up)."""
-    cfw = torch.zeros(n, 4, 4, dtype=torch.float64)
-    for i in range(n):
-        a = 2 * math.pi * i / n
-        eye = torch.tensor([radius * math.cos(a), radius * math.sin(a), 0.5], dtype=torch.float64)
-        forward = -eye / eye.norm()
-        right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-        right = right / right.norm()
-        R = torch.stack([right, torch.linalg.cross(forward, right), forward])
-        cfw[i, :3, :3], cfw[i, :3, 3], cfw[i, 3, 3] = R, -R @ eye, 1.0
-    K = torch.tensor([[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]],
-                     dtype=torch.float64).expand(n, 3, 3).clone()
-    wh = torch.full((n,), size)
-    return Cameras(K, cfw, wh, wh.clone())
 
 
 def median_ms(fn, reps: int) -> float:
