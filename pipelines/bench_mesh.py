@@ -1,4 +1,4 @@
-"""Mesh benchmark (issue #6): train short runs, extract meshes, score them against ground truth.
+"""Mesh benchmark: train short runs, extract meshes, score them against ground truth.
 
 Protocol, through the real `recon` CLI as a user would run it (2 CPU threads):
 - sample: `recon sfm --from-transforms sample_data`; train ngp and 3dgs for a time budget each;

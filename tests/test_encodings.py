@@ -1,4 +1,4 @@
-"""Positional encoding: seed Problem 2 dimensions and the seed's exact layout."""
+"""Positional encoding: the output dimensions and layout of Mildenhall et al. 2020 (eq. 4)."""
 
 import math
 

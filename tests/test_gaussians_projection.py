@@ -1,5 +1,5 @@
 """Quaternion -> R, Sigma = R S S^T R^T, EWA projection, the stable conic, the 3-sigma radius
-and SH colour: seed Problem 5, brute-force twins and hard cases."""
+and SH colour: a worked example, brute-force twins and hard cases."""
 
 import math
 
@@ -59,7 +59,7 @@ def test_problem5_through_project_gaussians():
                                                        torch.eye(4, dtype=F64), 2000, 2000)
     assert means2d[0].tolist() == pytest.approx([1111 * 0.2 + 1000, -1111 * 0.1 + 1000])
     assert float(depths[0]) == 2.0
-    assert float(radii[0]) == math.ceil(3 * math.sqrt(3311.6))  # 173 px, the seed's extent
+    assert float(radii[0]) == math.ceil(3 * math.sqrt(3311.6))  # 173 px: 3 sigma of the larger eigenvalue
 
 
 def test_covariance_is_the_product_of_its_factor():

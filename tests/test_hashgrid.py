@@ -1,4 +1,4 @@
-"""Multiresolution hash encoding: seed Problem 4, the hash against big-int arithmetic, the
+"""Multiresolution hash encoding: the growth factor of Müller et al. 2022 (eq. 3), the hash against big-int arithmetic, the
 numba kernel against the pure-torch twin (values and gradients), exactness of trilinear
 interpolation, and points on faces, corners and the box corners."""
 

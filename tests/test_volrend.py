@@ -1,4 +1,4 @@
-"""The compositing quadrature: seed Problem 3, padded == packed, limiting cases, stability."""
+"""The compositing quadrature: a worked example, padded == packed, limiting cases, stability."""
 
 import math
 

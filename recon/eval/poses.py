@@ -1,4 +1,4 @@
-"""Pose accuracy of the `sfm` stage against reference poses (Sim3-aligned, SPEC §5)."""
+"""Pose accuracy of the `sfm` stage against reference poses (Sim3-aligned: Umeyama 1991)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Multiresolution hash encoding (seed, "Instant-NGP and the multiresolution hash grid").
+"""Multiresolution hash encoding (Müller et al. 2022, Sec. 3).
 
 L levels with resolutions N_l = floor(N_min b^l), b = exp((ln N_max - ln N_min) / (L - 1)).
 Level l is a grid of (N_l + 1)^3 vertices over the unit cube, each holding F features. A level
@@ -30,7 +30,7 @@ PRIMES = (1, 2654435761, 805459861)
 
 
 def growth_factor(n_levels: int, n_min: int, n_max: int) -> float:
-    """b = exp((ln N_max - ln N_min) / (L - 1)); seed Problem 4: (16, 16, 2048) -> 1.3819."""
+    """b = exp((ln N_max - ln N_min) / (L - 1)); worked example (Müller et al. 2022, eq. 3): (16, 16, 2048) -> 1.3819."""
     if n_levels == 1:
         return 1.0
     return math.exp((math.log(n_max) - math.log(n_min)) / (n_levels - 1))

@@ -1,5 +1,5 @@
-"""Real spherical harmonics up to degree 3 (seed, "View-dependent color with spherical
-harmonics"), in the ordering and sign convention of the 3DGS reference implementation so
+"""Real spherical harmonics up to degree 3 (Sloan 2008, "Stupid
+Spherical Harmonics Tricks"; as used by Yu et al. 2021 and Kerbl et al. 2023), in the ordering and sign convention of the 3DGS reference implementation so
 that splat PLY files interoperate."""
 
 from __future__ import annotations

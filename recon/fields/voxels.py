@@ -1,4 +1,4 @@
-"""A sparse voxel grid (Plenoxels, seed "Plenoxels and DVGO"): values live on the vertices of a
+"""A sparse voxel grid (Plenoxels, Fridovich-Keil et al. 2022, Sec. 3): values live on the vertices of a
 res^3 lattice over the unit cube, stored only where `links` points at a data row; the field
 at x is the trilinear interpolation of its 8 surrounding vertices (pruned vertices count as 0).
 

@@ -1,5 +1,4 @@
-"""Adaptive density control (Kerbl et al. 2023; seed, "Adaptive densification and why it hits
-real-time"), as a stateless strategy dataclass plus a state dict of accumulators (gsplat style).
+"""Adaptive density control (Kerbl et al. 2023, Sec. 5.2), as a stateless strategy dataclass plus a state dict of accumulators (gsplat style).
 
 Per step, for every Gaussian visible in the view, accumulate |dL/d mu'_ndc| (the 2D mean
 gradient in NDC units, dL/d mu'_px * (W/2, H/2), as the reference) and the largest screen

@@ -1,6 +1,6 @@
 """3D Gaussians to 2D splats: quaternion -> rotation, Sigma = R S S^T R^T, EWA projection
 Sigma' = J W Sigma W^T J^T + 0.3 I, the stable 2x2 conic, the 3-sigma radius and SH colour
-(seed, "3D Gaussian Splatting" / "Projection to 2D via the EWA splatting Jacobian").
+(Kerbl et al. 2023, Sec. 4, eqs. 5-6; EWA splatting: Zwicker et al. 2001).
 
 All functions are vectorised torch with autograd, device-agnostic; G = number of Gaussians.
 """
@@ -62,7 +62,7 @@ def ewa_covariance_2d(points_in_cam: Tensor, factor_in_cam: Tensor, K: Tensor, w
     [[a, b], [b, c]]. Working on the factor keeps it elementwise (no batched 3x3 matmuls, which
     are slow on a CPU). x/z and y/z are clamped to the frustum widened by the guard band (the
     reference's 1.3x), measured from the principal point so off-centre cameras work too.
-    Worked example (seed Problem 5): mean (0.4, -0.2, 2), scales (0.1, 0.05, 0.2), 30deg about
+    Worked example: mean (0.4, -0.2, 2), scales (0.1, 0.05, 0.2), 30deg about
     z, f = 1111 -> eigenvalues 1163.4 and 3311.6 px^2.
     """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]

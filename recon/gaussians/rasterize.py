@@ -1,6 +1,6 @@
 """Fast CPU tile rasterizer (numba), forward and backward, as a `torch.autograd.Function`.
 
-Per pixel p and its tile's depth-sorted list (seed, "Tile-based differentiable rasterization"):
+Per pixel p and its tile's depth-sorted list (Kerbl et al. 2023, Sec. 6):
     alpha_i = min(0.99, o_i exp(-0.5 d^T conic_i d)), d = mu_i - p, skipped if < 1/255,
     T_i = prod_{j<i} (1 - alpha_j), F(p) = sum_i T_i alpha_i f_i,
 stopping before the splat that would take T below 1e-4. The forward saves the final T and the

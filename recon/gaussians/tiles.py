@@ -1,5 +1,5 @@
 """Tile binning: each splat is listed in every 16x16 tile its 3-sigma box touches, and the
-lists are ordered by (tile, depth) (seed, "Tile-based differentiable rasterization").
+lists are ordered by (tile, depth) (Kerbl et al. 2023, Sec. 6).
 
 Two twins produce the same `tile_start` / `gauss_ids`:
 - `bin_gaussians_sorted`: the reference's one global sort of (tile, depth-rank) keys, pure torch

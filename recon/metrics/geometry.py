@@ -1,5 +1,5 @@
 """Geometry metrics against ground truth: accuracy, completeness, Chamfer, precision / recall /
-F-score at a threshold tau, normal consistency (seed, "The evaluation-metric trap").
+F-score at a threshold tau, normal consistency (Knapitsch et al. 2017, "Tanks and Temples", Sec. 4).
 
 Distances are Euclidean (not squared), in the units of the inputs; nearest neighbours by
 scipy's cKDTree. Meshes are compared through points sampled uniformly by area.

@@ -1,4 +1,4 @@
-"""Image metrics on held-out views: PSNR, SSIM and depth errors (seed, "The evaluation-metric trap").
+"""Image metrics on held-out views: PSNR, SSIM and depth errors (SSIM: Wang et al. 2004).
 
 Images are (..., H, W, 3) in [0, max_val]; leading dims are a batch and give one value per image.
 None of these measures geometry: pair them with `recon.metrics.geometry`.
@@ -20,7 +20,7 @@ def _as_tensor(x) -> Tensor:
 
 
 def psnr(pred, target, max_val: float = 1.0) -> Tensor:
-    """PSNR = 10 log10(MAX^2 / MSE), MSE = mean over H, W and channels (seed, eq. PSNR).
+    """PSNR = 10 log10(MAX^2 / MSE), MSE = mean over H, W and channels (the usual definition).
 
     pred, target: (..., H, W, 3) arrays or tensors. Returns (...,) float64; +inf when
     the images are identical. Example: a constant offset e gives PSNR = -20 log10(e / MAX).

@@ -1,4 +1,4 @@
-"""Plenoxels (Fridovich-Keil et al. 2022; seed "Plenoxels and DVGO"): a sparse voxel grid of
+"""Plenoxels (Fridovich-Keil et al. 2022, "Plenoxels: Radiance Fields without Neural Networks"): a sparse voxel grid of
 density + spherical-harmonic colour, trilinear interpolation, NO neural network, a total
 variation regulariser, coarse-to-fine upsampling and pruning of empty voxels.
 

@@ -1,5 +1,5 @@
-"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023; seed, "3D Gaussian
-Splatting"), its flat config and presets, registered at import.
+"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023, "3D
+Gaussian Splatting for Real-Time Radiance Field Rendering"), its flat config and presets, registered at import.
 
 A training step renders one full training view (shuffled epoch order), takes
 loss = (1 - lambda) L1 + lambda (1 - SSIM), runs fused Adam with the reference's per-attribute

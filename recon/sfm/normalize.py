@@ -1,4 +1,4 @@
-"""Scene normalization (SPEC §3): a similarity `scene_from_world` that puts the cameras and
+"""Scene normalization: a similarity `scene_from_world` that puts the cameras and
 the robust bulk of the sparse points inside [-1, 1]^3, +z up, and the box of interest."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """ONE volume-rendering core shared by the volume methods (nerf, ngp, plenoxel).
 
 Pure functions over sample intervals, padded (R, S) or packed (N,) + ray_indices:
-  volrend      - alpha, exclusive transmittance, weights, compositing (seed "Quadrature").
+  volrend      - alpha, exclusive transmittance, weights, compositing (Max 1995; Mildenhall et al. 2020, eq. 3).
   samplers     - ray/box intersection, stratified and inverse-CDF (hierarchical) sampling.
   occupancy    - occupancy bitfield, marching with empty-space skipping, early termination.
   contraction  - mip-NeRF 360 scene contraction for unbounded scenes.

@@ -1,4 +1,4 @@
-"""Where samples go along a ray (seed, "Stratified and hierarchical sampling"): ray/box
+"""Where samples go along a ray (Mildenhall et al. 2020, Sec. 5.2): ray/box
 intersection, stratified intervals in [near, far], and inverse-CDF resampling of a coarse
 weight distribution. All functions return padded (R, S) interval tensors for `volrend`.
 """

@@ -1,5 +1,5 @@
-"""The volume-rendering quadrature shared by every volume method (seed, "Quadrature, the
-alpha-compositing sum"):
+"""The volume-rendering quadrature shared by every volume method (Max 1995, "Optical
+Models for Direct Volume Rendering"; Mildenhall et al. 2020, eq. 3):
 
     alpha_i = 1 - exp(-sigma_i delta_i),   T_i = exp(-sum_{j<i} sigma_j delta_j),
     w_i = T_i alpha_i,   C = sum_i w_i c_i + (1 - sum_i w_i) c_bg.
@@ -99,8 +99,8 @@ class VolumeRender:
     """Per-ray results of `volume_render`.
 
     rgb: (R, 3) composited on the background; acc: (R,) opacity sum_i w_i;
-    depth: (R,) expected distance sum_i w_i t_mid_i (NOT divided by acc, as in the seed; use
-    `depth / acc.clamp_min(eps)` for the depth of the surface hit);
+    depth: (R,) expected distance sum_i w_i t_mid_i, NOT divided by acc (as NeRF's depth map,
+    Mildenhall et al. 2020); use `depth / acc.clamp_min(eps)` for the depth of the surface hit;
     weights, transmittance: per sample, padded (R, S) or packed (N,).
     """
 

@@ -1,6 +1,6 @@
 """`workspace.json`, stage records, staleness, locks, and every path inside a workspace.
 
-Layout (SPEC §2):
+Layout:
     WS/workspace.json          schema_version + one record per stage output
     WS/images/                 undistorted training images (PNG, composited on the background)
     WS/images_<K>/             the same images area-downsampled by K (built on first use, shared)

@@ -1,4 +1,4 @@
-"""Bad photo folders (issue #7). The validation layer (recon/sfm/photos.py) directly for the
+"""Bad photo folders. The validation layer (recon/sfm/photos.py) directly for the
 per-file cases not in tests/test_sfm_photos.py (a 1-pixel image, mixed sizes, textureless
 photos pass validation), and the real `recon sfm PHOTOS` for whole folders that cannot work:
 one error line, a non-zero exit, and no workspace left behind."""

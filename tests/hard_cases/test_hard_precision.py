@@ -1,4 +1,4 @@
-"""Reduced precision (issue #7: "bf16/fp16 inference where offered"). nerf runs its MLP
+"""Reduced precision (bf16/fp16 inference where offered). nerf runs its MLP
 matmuls in bf16 where the hardware has it (`precision`, tested against fp32 in test_nerf.py);
 the other models train and render in float32. The shared math accepts half inputs: the
 volume-rendering core and the torch hash encoding. Fed fp16/bf16 they must give the float32
