@@ -61,9 +61,3 @@ def reset_rows(params: nn.ParameterDict, optimizer: torch.optim.Adam, name: str,
     """Overwrite one attribute (e.g. the opacity reset) and zero its moments."""
     update_rows(params, optimizer, lambda _, x: value.to(x), lambda _, m: torch.zeros_like(m),
                 names=[name])
-
-
-def set_lr(optimizer: torch.optim.Adam, name: str, lr: float) -> None:
-    for group in optimizer.param_groups:
-        if group["name"] == name:
-            group["lr"] = lr

@@ -15,11 +15,7 @@ from torch import Tensor
 from recon.cameras.rays import pixel_centers
 from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, tile_bounds
-
-
-def exclusive_cumprod(x: Tensor) -> Tensor:
-    """[1, x_0, x_0 x_1, ...] along the last dim.  (..., N) -> (..., N)."""
-    return torch.cumprod(torch.cat([torch.ones_like(x[..., :1]), x[..., :-1]], -1), -1)
+from recon.volrend.volrend import alpha_compositing
 
 
 def splat_alphas(means2d: Tensor, conics: Tensor, opacities: Tensor, pixels: Tensor) -> Tensor:
@@ -36,13 +32,10 @@ def splat_alphas(means2d: Tensor, conics: Tensor, opacities: Tensor, pixels: Ten
 
 
 def composite_alphas(alpha: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
-    """Front-to-back compositing with early termination.  alpha (P, G) depth-sorted,
-    features (G, D) -> F (P, D), T_final (P,)."""
-    T = exclusive_cumprod(1 - alpha)
-    stop = (T * (1 - alpha) < T_MIN) & (alpha > 0)
-    alpha = torch.where(torch.cumsum(stop.int(), -1) > 0, torch.zeros_like(alpha), alpha)
-    T = exclusive_cumprod(1 - alpha)
-    return (T * alpha) @ features, torch.prod(1 - alpha, -1)
+    """Front-to-back compositing with early termination (`volrend.alpha_compositing`, the one
+    compositing primitive).  alpha (P, G) depth-sorted, features (G, D) -> F (P, D), T_final (P,)."""
+    weights, alpha = alpha_compositing(alpha, t_min=T_MIN)
+    return weights @ features, torch.exp(torch.log1p(-alpha).sum(-1))
 
 
 def rasterize_features_ref(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,

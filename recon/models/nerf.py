@@ -32,19 +32,18 @@ from torch import Tensor, nn
 
 from recon.cameras import Cameras
 from recon.fields.encodings import positional_encoding, positional_encoding_dim
+from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import (
-    exp_decay_lr,
     mlp_dtype,
     points_in_box,
-    psnr,
     ray_bounds,
     render_image,
     sample_rays,
     scatter_rays,
-    set_lr,
 )
+from recon.models.schedules import exp_decay_lr, set_lr
 from recon.volrend import (
     OccupancyGrid,
     contract,
@@ -286,7 +285,8 @@ class NeRFModel(Model):
             loss.backward()
             self.optimizer.step()
         hit_fraction = fine["hit"].float().mean().item()
-        out = {"loss": loss.item(), "psnr": psnr(mse_f.item()), "psnr_coarse": psnr(mse_c.item()),
+        out = {"loss": loss.item(), "psnr": training_psnr(mse_f.item()),
+               "psnr_coarse": training_psnr(mse_c.item()),
                "samples_per_ray": (cfg.n_coarse * 2 + cfg.n_fine) * hit_fraction}
         if self.occupancy is not None:
             out["occupied"] = self.occupancy.occupancy_fraction()

@@ -28,19 +28,18 @@ from torch import Tensor, nn
 from recon.cameras import Cameras
 from recon.fields.hashgrid import HashGrid
 from recon.fields.sh import num_sh_bases, sh_basis
+from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import (
-    exp_decay_lr,
     mlp,
     points_in_box,
-    psnr,
     ray_bounds,
     render_image,
     sample_rays,
-    set_lr,
     trunc_exp,
 )
+from recon.models.schedules import exp_decay_lr, set_lr
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, terminated_mask, volume_render
 from recon.volrend.distortion import distortion_loss
 from recon.volrend.occupancy import marching_distance
@@ -242,7 +241,7 @@ class NGPModel(Model):
         if cfg.samples_per_batch > 0:  # Instant-NGP: keep the samples per step, not the rays, fixed
             wanted = cfg.samples_per_batch * n_rays / max(n_samples, 1)
             self.n_rays = int(min(max(wanted, n_rays / 2, 64), 2 * n_rays, 1 << 16))  # at most x2 a step
-        return {"loss": loss.item(), "psnr": psnr(mse), "samples_per_ray": n_samples / n_rays, "rays": n_rays,
+        return {"loss": loss.item(), "psnr": training_psnr(mse), "samples_per_ray": n_samples / n_rays, "rays": n_rays,
                 "occupied": self.occupancy.occupancy_fraction()}
 
     @torch.no_grad()

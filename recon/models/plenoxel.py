@@ -8,17 +8,19 @@ termination, and `volrend.volume_render` for the quadrature.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from recon.cameras import Cameras, camera_rays
+from recon.cameras import Cameras
 from recon.fields.sh import C0, eval_sh, num_sh_bases
 from recon.fields.voxels import SparseVoxelGrid
+from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.raymarch import render_image
+from recon.models.schedules import exp_decay_lr
 from recon.volrend import (
     OccupancyGrid,
     ray_aabb_intersect,
@@ -195,27 +197,22 @@ class PlenoxelModel(Model):
         loss = mse + self._tv_loss()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        decay = 0.1 ** min(step / max(self.cfg.lr_decay_steps, 1), 1.0)
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
-            g["lr"] = base * decay
+            g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
         self.optimizer.step()
         if self.cfg.samples_per_batch > 0:  # Instant-NGP: a fixed sample budget per step, not fixed rays
             wanted = self.cfg.samples_per_batch * n_rays / max(out["samples"], 1)
             self.n_rays = int(min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch))
-        return {"loss": float(loss.detach()), "psnr": -10.0 * math.log10(max(float(mse.detach()), 1e-10)),
+        return {"loss": float(loss.detach()), "psnr": training_psnr(mse.detach()),
                 "samples_per_ray": out["samples"] / n_rays, "rays": n_rays, "voxels": self.grid.num_rows}
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
-        o, d, z = camera_rays(camera, 0)
-        H, W = o.shape[:2]
-        outs = [self.render_rays(oc, dc, jitter=False) for oc, dc in
-                zip(o.reshape(-1, 3).split(self.cfg.chunk), d.reshape(-1, 3).split(self.cfg.chunk))]
-        rgb = torch.cat([r["rgb"] for r in outs]).view(H, W, 3)
-        acc = torch.cat([r["acc"] for r in outs]).view(H, W)
-        depth_t = torch.cat([r["depth"] for r in outs]).view(H, W)
-        depth = depth_t / acc.clamp_min(1e-6) * z
-        return {"rgb": rgb, "acc": acc, "depth": depth}
+        def rays(origins: Tensor, directions: Tensor):
+            out = self.render_rays(origins, directions, jitter=False)
+            return out["rgb"], out["depth"], out["acc"]
+
+        return render_image(rays, camera, self.cfg.chunk)
 
     # ---- state ---------------------------------------------------------------------------
     def load_state_dict(self, state: dict, strict: bool = True):

@@ -4,7 +4,6 @@ small MLPs, the truncated exponential and scene bounds. No rendering maths lives
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -12,7 +11,7 @@ from torch import Tensor, nn
 
 from recon.cameras import Cameras, camera_rays
 from recon.models.base import SceneInfo
-from recon.volrend import normalize_to_box, ray_aabb_intersect
+from recon.volrend import normalize_to_box, ray_aabb_intersect, surface_depth
 
 # render_rays(origins (R, 3), directions (R, 3)) -> (rgb (R, 3), expected t (R,), acc (R,))
 RenderRaysFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
@@ -37,8 +36,7 @@ def render_image(render_rays: RenderRaysFn, camera: Cameras, chunk: int) -> dict
     o, d = origins.reshape(-1, 3).float(), directions.reshape(-1, 3).float()
     parts = [render_rays(o[i:i + chunk], d[i:i + chunk]) for i in range(0, o.shape[0], chunk)]
     rgb, t, acc = (torch.cat(p) for p in zip(*parts))
-    depth_t = torch.where(acc > 0, t / acc.clamp_min(1e-10), torch.zeros_like(t))
-    depth = depth_t * z_per_t.reshape(-1).to(t)
+    depth = surface_depth(t, acc) * z_per_t.reshape(-1).to(t)
     return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
 
 
@@ -128,17 +126,3 @@ def trunc_exp(x: Tensor) -> Tensor:
     return _TruncExp.apply(x)
 
 
-def psnr(mse: float) -> float:
-    """-10 log10(MSE) for images in [0, 1]."""
-    return -10.0 * math.log10(max(mse, 1e-10))
-
-
-def exp_decay_lr(step: int, lr: float, lr_final: float, decay_steps: int) -> float:
-    """lr * (lr_final / lr)^(step / decay_steps), held at lr_final afterwards."""
-    frac = min(step / max(decay_steps, 1), 1.0)
-    return lr * (lr_final / lr) ** frac
-
-
-def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = lr

@@ -23,7 +23,6 @@ of a pixel) and 5,400 steps end at 31.5 dB against 32.8 dB without; fox gains no
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -43,12 +42,15 @@ from recon.gaussians.init import (
     sample_in_shell,
     uses_random_init,
 )
-from recon.gaussians.optim import make_adam, set_lr
+from recon.gaussians.optim import make_adam
 from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.render import ProjectedSplats, composite_rgb, composite_rgbd, project_splats
 from recon.gaussians.ssim import ssim
+from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.schedules import exp_decay_lr, set_lr
+from recon.volrend import surface_depth
 
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
 # measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
@@ -154,8 +156,7 @@ def camera_extent(cameras: Cameras) -> float:
 
 def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
     """Log-linear decay lr_means -> lr_means_final over lr_decay_steps, times the extent."""
-    t = min(max(step / max(config.lr_decay_steps, 1), 0.0), 1.0)
-    return extent * math.exp((1 - t) * math.log(config.lr_means) + t * math.log(config.lr_means_final))
+    return extent * exp_decay_lr(step, config.lr_means, config.lr_means_final, config.lr_decay_steps)
 
 
 def pose_lr(config: GaussiansConfig, step: int) -> float:
@@ -163,9 +164,8 @@ def pose_lr(config: GaussiansConfig, step: int) -> float:
     decay to lr_pose_final at its end: a camera is visited once per pass over the training
     views and needs tens of updates to come back, so the decay waits; then it stops the
     corrections' jitter."""
-    begin = 0.5 * (config.pose_refine_start + config.lr_decay_steps)
-    t = min(max((step - begin) / max(config.lr_decay_steps - begin, 1), 0.0), 1.0)
-    return math.exp((1 - t) * math.log(config.lr_pose) + t * math.log(config.lr_pose_final))
+    begin = (config.pose_refine_start + config.lr_decay_steps) // 2
+    return exp_decay_lr(step, config.lr_pose, config.lr_pose_final, config.lr_decay_steps, begin)
 
 
 def uses_appearance(config: GaussiansConfig, scene: SceneInfo) -> bool:
@@ -288,7 +288,7 @@ class GaussianModel(Model):
             self._densify(splats, step, extent)
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
-        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-10)),
+        return {"loss": loss.item(), "psnr": training_psnr(mse),
                 "num_gaussians": float(self.num_gaussians)}
 
     def _train_camera(self, data: TrainData, view: int, step: int) -> Cameras:
@@ -328,7 +328,7 @@ class GaussianModel(Model):
 
     def _pose_step(self, step: int) -> None:
         if self.pose_optimizer is not None and step >= self.config.pose_refine_start:
-            set_lr(self.pose_optimizer, "pose", pose_lr(self.config, step))
+            set_lr(self.pose_optimizer, pose_lr(self.config, step), "pose")
             self.pose_optimizer.step()
             self.pose_optimizer.zero_grad(set_to_none=True)
             self.pose_correction.remove_gauge()
@@ -355,7 +355,7 @@ class GaussianModel(Model):
             self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
         scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
         self.active_sh_degree.fill_(max(scheduled, self._min_sh_degree))
-        set_lr(self.optimizer, "means", means_lr(c, step, extent))
+        set_lr(self.optimizer, means_lr(c, step, extent), "means")
         return extent
 
     @torch.no_grad()
@@ -401,7 +401,7 @@ class GaussianModel(Model):
                                 self.config.near_plane)
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
-        depth = torch.where(acc > 0, out["depth"] / acc.clamp_min(1e-10), torch.zeros_like(acc))
+        depth = surface_depth(out["depth"], acc)
         rgb = out["rgb"]
         if self.appearance is not None and len(self.appearance.deltas):
             rgb = self.appearance.for_camera(rgb, camera)  # nearest training photos' exposure

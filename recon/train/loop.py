@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.cameras import Cameras
+from recon.metrics.image import training_psnr
 from recon.models.base import Model, TrainData
 from recon.train.config import TrainConfig
 
@@ -47,7 +48,7 @@ def heldout_psnr(model: Model, cameras: Cameras, images: torch.Tensor,
                 raise KeyboardInterrupt
             rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
             mse = torch.mean((rgb - images[i].to(rgb.device)) ** 2).item()
-            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+            psnrs.append(training_psnr(mse))
     finally:
         model.train(was_training)
     return float(sum(psnrs) / len(psnrs))
