@@ -13,7 +13,7 @@ from recon.fields.sh import C0
 from recon.gaussians.render import composite_rgb, project_splats
 from recon.models.base import METHODS, SceneInfo, TrainData
 from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
-from recon.train.config import field_help
+from recon.options import field_help
 
 
 def look_at_origin(eye):

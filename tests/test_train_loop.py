@@ -8,7 +8,8 @@ import torch
 
 from recon.cameras import Cameras
 from recon.models.base import MethodSpec, Model, register
-from recon.train.config import TrainConfig, apply_overrides, field_help
+from recon.options import field_help
+from recon.train.config import TrainConfig, apply_overrides
 from recon.train.loop import LoopState, run_loop, should_stop
 
 

@@ -10,6 +10,8 @@ import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
 from recon.cli.progress import Progress
+from recon.options import config_option, field_help, from_options
+from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.scene_writer import SceneConfig
 from recon.sfm.sources import SourceError, read_colmap, read_transforms
 from recon.sfm.stage import write_sfm_stage
@@ -83,25 +85,20 @@ def _summary_line(report: dict, root: Path) -> str:
               help="Known poses: a COLMAP sparse model folder (text or binary).")
 @click.option("--images", "colmap_images", type=click.Path(path_type=Path),
               help="With --from-colmap: the images folder (default: next to the model).")
-@click.option("--downscale", default=1, show_default=True, type=click.IntRange(1, 64),
-              help="Integer downscale factor (area resampling; intrinsics scaled exactly).")
-@click.option("--background", type=click.Choice(["auto", "white", "black"]), default="auto",
-              show_default=True, help="Colour that transparent pixels are composited on (auto: white).")
-@click.option("--scene", "scene_kind", type=click.Choice(["auto", "bounded", "unbounded"]), default="auto",
-              show_default=True, help="Bounded object (box) or unbounded capture (contraction); "
-                                      "auto: bounded when the images have alpha.")
-@click.option("--holdout-every", default=8, show_default=True, type=click.IntRange(2, 1000),
-              help="Every N-th image is held out for testing unless the dataset has a split.")
-@click.option("--max-image-size", default=None, type=int, help="Photos: SIFT works on images resized to this.")
-@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default="auto",
-              show_default=True, help="Photos: feature matcher (auto: exhaustive for small sets).")
-@click.option("--mapper", type=click.Choice(["incremental", "global"]), default="incremental",
-              show_default=True, help="Photos: mapper.")
-@click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
-              help="Photos: COLMAP camera model (SIMPLE_RADIAL, OPENCV, PINHOLE, ...).")
-@click.option("--single-camera/--multi-camera", default=True, show_default=True,
-              help="Photos: one shared camera (one device) or one per image.")
-@click.option("--seed", default=0, show_default=True, help="Photos: random seed.")
+@config_option(SceneConfig, "downscale", type=click.IntRange(1, 64))
+@config_option(SceneConfig, "background")
+@config_option(SceneConfig, "scene")
+@config_option(SceneConfig, "holdout_every", type=click.IntRange(2, 1000))
+@config_option(SfmConfig, "max_image_size", type=click.IntRange(64))
+@config_option(SfmConfig, "max_num_features", type=click.IntRange(64))
+@config_option(SfmConfig, "matcher")
+@config_option(SfmConfig, "mapper")
+@config_option(SfmConfig, "camera_model")
+@config_option(SfmConfig, "single_camera", "--single-camera/--multi-camera")
+@config_option(SfmConfig, "try_harder")
+@config_option(SfmConfig, "min_image_side", type=click.IntRange(1))
+@config_option(SfmConfig, "seed")
+@config_option(SfmConfig, "num_threads")
 @click.option("--frames", "frames", type=int, default=None,
               help="Video: about this many frames in all, evenly over the video(s) [default: 100].")
 @click.option("--fps", "fps", type=float, default=None,
@@ -111,9 +108,8 @@ def _summary_line(report: dict, root: Path) -> str:
                    "median over all windows' sharpest [default: 0.35; 0 keeps all].")
 @json_option
 @click.pass_context
-def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale, background,
-        scene_kind, holdout_every, max_image_size, matcher, mapper, camera_model, single_camera,
-        seed, frames, fps, blur_ratio, as_json):
+def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, frames, fps, blur_ratio,
+        as_json, **options):
     """Camera poses and sparse points -> WS/sfm/ (COLMAP model, cameras.json, points.ply, report).
 
     \b
@@ -125,16 +121,15 @@ def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale
     sources = [x for x in (images, transforms, colmap_dir) if x is not None]
     if len(sources) != 1:
         raise click.UsageError("give exactly one of IMAGES, --from-transforms, --from-colmap")
-    cfg = SceneConfig(downscale=downscale, background=background, scene=scene_kind,
-                      holdout_every=holdout_every)
+    cfg = from_options(SceneConfig, options)
+    holdout_every = cfg.holdout_every
     root = Path(workspace)
     with Progress(enabled=not as_json) as progress:
         if images is not None:
             if not images.exists():
                 raise SourceError(f"photo folder or video {images} does not exist")
             video = _video_config(images, frames, fps, blur_ratio)
-            options = {"max_image_size": max_image_size, "matcher": matcher, "mapper": mapper,
-                       "camera_model": camera_model, "single_camera": single_camera, "seed": seed,
+            options = {**{k: v for k, v in options.items() if k in field_help(SfmConfig)},
                        "verbose": ctx.obj["verbose"]}
             with new_or_existing_workspace(root) as ws:
                 report = _photo_sfm(images, ws, cfg, options, progress, video)

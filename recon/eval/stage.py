@@ -18,6 +18,7 @@ from recon.eval.speed import read_log, speed_metrics
 from recon.io.exr import read_depth_exr
 from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
 from recon.models.registry import pick_device
+from recon.options import opt
 from recon.render.views import render_view
 from recon.train.resolution import output_levels
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
@@ -27,17 +28,17 @@ from recon.workspace.scene import level_size
 
 @dataclass(frozen=True)
 class EvalConfig:
-    split: str = "test"  # held-out split
-    every: int = 1  # evaluate every N-th view of the split (lego-200 protocol: 8)
-    gt_mesh: str = ""  # ground-truth mesh (original units); default: the dataset's, if it has one
-    gt_points: str = ""  # ground-truth point cloud (original units), instead of a mesh
-    tau: float = 0.0  # F-score threshold in original units (0 = 1 % of the GT bounding-box diagonal)
-    gt_poses: str = ""  # reference poses (transforms.json or COLMAP model) for sfm pose accuracy
-    lpips: bool = True  # compute LPIPS when its weights are available
-    max_side: int = 0  # evaluate at the pyramid level whose longer side fits N px (0 = the run's training level)
-    downscale: int = 0  # evaluate at the sfm images downscaled by K (0 = the run's training level)
-    border: float = 0.15  # PSNR is also reported on the outer band of this fraction of each side
-    device: str = "auto"  # auto | cpu | cuda
+    split: str = opt("test", "held-out split")
+    every: int = opt(1, "evaluate every N-th view of the split (lego-200 protocol: 8)")
+    gt_mesh: str = opt("", "ground-truth mesh (original units); default: the dataset's, if it has one")
+    gt_points: str = opt("", "ground-truth point cloud (original units), instead of a mesh")
+    tau: float = opt(0.0, "F-score threshold in original units (0 = 1 % of the GT bounding-box diagonal)")
+    gt_poses: str = opt("", "reference poses (transforms.json or COLMAP model) for sfm pose accuracy")
+    lpips: bool = opt(True, "compute LPIPS when its weights are available")
+    max_side: int = opt(0, "evaluate at the pyramid level whose longer side fits N px (0 = the run's training level)")
+    downscale: int = opt(0, "evaluate at the sfm images downscaled by K (0 = the run's training level)")
+    border: float = opt(0.15, "PSNR is also reported on the outer band of this fraction of each side")
+    device: str = opt("auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda"))
 
 
 def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model) -> dict:

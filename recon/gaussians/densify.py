@@ -18,24 +18,25 @@ from torch import Tensor, nn
 
 from recon.gaussians.optim import append_rows, keep_rows, reset_rows
 from recon.gaussians.projection import rotation_from_quats
+from recon.options import opt
 
 RESET_OPACITY = 0.01  # opacity after a reset; Gaussians the views do not need fade below 0.005
 
 
 @dataclass(frozen=True)
 class DensifyStrategy:
-    grad_threshold: float = 0.0002  # mean NDC positional-gradient norm that triggers densify
-    dense_fraction: float = 0.01  # clone if max scale <= this x scene extent, else split
-    split_shrink: float = 1.6  # split children get scales / this (0.8 x 2 children)
-    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
-    prune_screen_fraction: float = 0.15  # prune if the screen radius passed this x max(W, H)
-    prune_world_fraction: float = 0.1  # prune if the max scale passed this x scene extent
-    start: int = 500  # first step that densifies
-    stop: int = 15000  # no densification or opacity reset from this step on
-    interval: int = 100  # densify every this many steps
-    reset_interval: int = 3000  # opacity reset every this many steps
-    max_gaussians: int = 10_000_000  # densification never grows the count beyond this
-    clone_opacity_correction: bool = False  # clone and original get 1 - sqrt(1 - o) each
+    grad_threshold: float = opt(0.0002, "mean NDC positional-gradient norm that triggers densify")
+    dense_fraction: float = opt(0.01, "clone if max scale <= this x scene extent, else split")
+    split_shrink: float = opt(1.6, "split children get scales / this (0.8 x 2 children)")
+    prune_opacity: float = opt(0.005, "prune Gaussians less opaque than this")
+    prune_screen_fraction: float = opt(0.15, "prune if the screen radius passed this x max(W, H)")
+    prune_world_fraction: float = opt(0.1, "prune if the max scale passed this x scene extent")
+    start: int = opt(500, "first step that densifies")
+    stop: int = opt(15000, "no densification or opacity reset from this step on")
+    interval: int = opt(100, "densify every this many steps")
+    reset_interval: int = opt(3000, "opacity reset every this many steps")
+    max_gaussians: int = opt(3_000_000, "densification never grows the count beyond this")
+    clone_opacity_correction: bool = opt(False, "clone and original get 1 - sqrt(1 - o) each")
 
 
 def init_state(n: int, device=None) -> dict[str, Tensor]:

@@ -21,6 +21,7 @@ from recon.mesh.marching_cubes import (
 )
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
 from recon.models.registry import pick_device
+from recon.options import opt
 from recon.train.resolution import trained_resolution
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 from recon.workspace.runs import load_run
@@ -28,14 +29,15 @@ from recon.workspace.runs import load_run
 
 @dataclass(frozen=True)
 class MeshConfig:
-    method: str = "auto"  # auto | marching-cubes | tsdf
-    resolution: int = 256  # samples (marching cubes) or voxels (TSDF) along the box's longest side
-    threshold: float = 0.0  # marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel), or less for a field softer than that (soft_field_threshold)
-    threshold_views: int = 6  # training views rendered to find the density at the rendered surface (threshold 0)
-    truncation: float = 0.02  # TSDF truncation as a fraction of the box's longest side
-    min_component: float = 0.02  # components with fewer faces than this fraction are removed
-    format: str = "ply"  # ply | obj | glb
-    device: str = "auto"  # auto | cpu | cuda
+    method: str = opt("auto", "auto: marching cubes on a density field (nerf/ngp/plenoxel), TSDF fusion "
+                      "of rendered depth otherwise (3dgs)", choices=("auto", "marching-cubes", "tsdf"))
+    resolution: int = opt(256, "samples (marching cubes) or voxels (TSDF) along the box's longest side")
+    threshold: float = opt(0.0, "marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel), or less for a field softer than that (soft_field_threshold)")
+    threshold_views: int = opt(6, "training views rendered to find the density at the rendered surface (threshold 0)")
+    truncation: float = opt(0.02, "TSDF truncation as a fraction of the box's longest side")
+    min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
+    format: str = opt("ply", "mesh file format", choices=("ply", "obj", "glb"))
+    device: str = opt("auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda"))
 
 
 def rendered_surface_density(model, scene, cfg: MeshConfig, device, downscale: int = 1) -> np.ndarray:

@@ -44,6 +44,7 @@ from recon.models.raymarch import (
     scatter_rays,
 )
 from recon.models.schedules import exp_decay_lr, set_lr
+from recon.options import opt
 from recon.volrend import (
     OccupancyGrid,
     contract,
@@ -70,30 +71,30 @@ RAY_BUCKET = 64
 class NeRFConfig:
     """NeRF. Defaults are the CPU "fast" preset (same family, smaller); "paper" is the paper's."""
 
-    pos_bands: int = 10  # positional-encoding bands L of the position
-    dir_bands: int = 4  # positional-encoding bands L of the view direction
-    depth: int = 4  # layers of the position MLP (paper: 8)
-    width: int = 128  # width of the position MLP (paper: 256)
-    skip_layer: int = 2  # 0-based layer that receives [h, gamma(x)] (paper: 5, after layer 4's output)
-    n_coarse: int = 32  # stratified samples per ray for the coarse network (paper: 64)
-    n_fine: int = 64  # extra inverse-CDF samples per ray for the fine network (paper: 128)
-    rays_per_batch: int = 1024  # rays per training step (paper: 4096)
-    density_activation: str = "softplus"  # relu (paper) | softplus (smoother start, as mip-NeRF)
-    lr: float = 5e-3  # Adam learning rate at step 0 (paper: 5e-4; 10x learns faster on a CPU budget)
-    lr_final: float = 5e-5  # learning rate after lr_decay_steps (exponential decay)
-    lr_decay_steps: int = 8000  # steps of the learning-rate decay: ~30 min here (paper: 250k x 1000 / 500)
-    background: str = "auto"  # auto (learned for unbounded scenes) | scene (the capture's colour) | learned
-    precision: str = "auto"  # MLP matmuls: auto (bf16 where native: AMX / AVX512-BF16 / CUDA) | bf16 | fp32
-    occupancy_res: int = 64  # occupancy-grid resolution for empty-space skipping (0 = off, as the paper)
-    occupancy_every: int = 16  # steps between occupancy-grid updates
-    occupancy_warmup: int = 256  # steps with every cell kept occupied (NeRF learns its shape slower than ngp)
-    occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
-    occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities
-    occupancy_seed_dilation: int = 2  # start from the cells within this many of an SfM point in the box (-1 = all)
-    march_steps: int = 256  # marching steps along the box diagonal that find each ray's occupied range
-    chunk: int = 2048  # rays per chunk when rendering images
-    default_steps: int = 3000  # steps when no stopping rule is given
-    seed: int = 0  # seeds ray sampling and sample jitter
+    pos_bands: int = opt(10, "positional-encoding bands L of the position")
+    dir_bands: int = opt(4, "positional-encoding bands L of the view direction")
+    depth: int = opt(4, "layers of the position MLP (paper: 8)")
+    width: int = opt(128, "width of the position MLP (paper: 256)")
+    skip_layer: int = opt(2, "0-based layer that receives [h, gamma(x)] (paper: 5, after layer 4's output)")
+    n_coarse: int = opt(32, "stratified samples per ray for the coarse network (paper: 64)")
+    n_fine: int = opt(64, "extra inverse-CDF samples per ray for the fine network (paper: 128)")
+    rays_per_batch: int = opt(1024, "rays per training step (paper: 4096)")
+    density_activation: str = opt("softplus", "relu (paper) | softplus (smoother start, as mip-NeRF)")
+    lr: float = opt(5e-3, "Adam learning rate at step 0 (paper: 5e-4; 10x learns faster on a CPU budget)")
+    lr_final: float = opt(5e-5, "learning rate after lr_decay_steps (exponential decay)")
+    lr_decay_steps: int = opt(8000, "steps of the learning-rate decay: ~30 min here (paper: 250k x 1000 / 500)")
+    background: str = opt("auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned")
+    precision: str = opt("auto", "MLP matmuls: auto (bf16 where native: AMX / AVX512-BF16 / CUDA) | bf16 | fp32")
+    occupancy_res: int = opt(64, "occupancy-grid resolution for empty-space skipping (0 = off, as the paper)")
+    occupancy_every: int = opt(16, "steps between occupancy-grid updates")
+    occupancy_warmup: int = opt(256, "steps with every cell kept occupied (NeRF learns its shape slower than ngp)")
+    occupancy_threshold: float = opt(0.01, "cells with opacity EMA below min(this, mean) are empty")
+    occupancy_decay: float = opt(0.9, "EMA decay per update of the cell opacities")
+    occupancy_seed_dilation: int = opt(2, "start from the cells within this many of an SfM point in the box (-1 = all)")
+    march_steps: int = opt(256, "marching steps along the box diagonal that find each ray's occupied range")
+    chunk: int = opt(2048, "rays per chunk when rendering images")
+    default_steps: int = opt(3000, "steps when no stopping rule is given")
+    seed: int = opt(0, "seeds ray sampling and sample jitter")
 
 
 PRESETS = {

@@ -40,6 +40,7 @@ from recon.models.raymarch import (
     trunc_exp,
 )
 from recon.models.schedules import exp_decay_lr, set_lr
+from recon.options import opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, terminated_mask, volume_render
 from recon.volrend.distortion import distortion_loss
 from recon.volrend.occupancy import marching_distance
@@ -50,37 +51,37 @@ from recon.volrend.samplers import uniform
 class NGPConfig:
     """Instant-NGP. Defaults are the CPU "fast" preset; "paper" restores the paper's sizes."""
 
-    n_levels: int = 16  # hash-grid levels L
-    n_features: int = 2  # features per level F
-    log2_table_size: int = 17  # log2 of the per-level hash-table size T (paper: 19)
-    n_min: int = 16  # coarsest grid resolution N_min
-    n_max: int = 1024  # finest grid resolution N_max (paper: 2048 x scene scale)
-    hidden: int = 64  # width of the hidden layers of both MLPs
-    geo_features: int = 15  # geometry-feature channels passed from the density to the colour MLP
-    sh_degree: int = 3  # SH degree of the view-direction encoding (3 = the paper's 16 coefficients)
-    rays_per_batch: int = 1024  # rays of the first training step
-    samples_per_batch: int = 1 << 16  # target samples per step: the ray batch adapts (0 = fixed)
-    march_steps: int = 256  # marching steps along the scene box diagonal (paper: 1024)
-    cone_angle: float = 1 / 256  # unbounded scenes only: step grows as t * cone_angle
-    disparity_from: float = 1.0  # unbounded: beyond this many box diagonals steps grow as t^2, linear in 1/t (0 = never)
-    max_samples_per_ray: int = 512  # at most this many marched samples per ray, front to back (0 = no cap)
-    background: str = "auto"  # auto (learned for unbounded scenes) | scene (the capture's colour) | learned
-    occupancy_res: int = 64  # occupancy grid resolution (paper: 128)
-    occupancy_every: int = 16  # steps between occupancy-grid updates
-    occupancy_warmup: int = 64  # steps during which every cell is updated and kept occupied (paper: 256)
-    occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
-    occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities (paper: 0.95)
-    occupancy_seed_dilation: int = 2  # start from the cells within this many of an SfM point in the box (-1 = all)
-    eps_transmittance: float = 1e-4  # early ray termination threshold
-    distortion: str = "auto"  # auto (on for unbounded scenes) | on | off: mip-NeRF 360's distortion loss
-    distortion_weight: float = 0.01  # its weight, on the near-to-far distance mapped to [0, 1]
-    lr: float = 1e-2  # Adam learning rate (grid and MLPs)
-    lr_final: float = 1e-3  # learning rate reached after lr_decay_steps (exponential decay)
-    lr_decay_steps: int = 5000  # steps of the learning-rate decay
-    weight_decay: float = 1e-6  # L2 on the MLP weights (not the grid)
-    chunk: int = 1024  # rays per chunk when rendering images (1024 keeps the MLP activations in cache)
-    default_steps: int = 2000  # steps when no stopping rule is given
-    seed: int = 0  # seeds ray sampling, marching jitter and occupancy updates
+    n_levels: int = opt(16, "hash-grid levels L")
+    n_features: int = opt(2, "features per level F")
+    log2_table_size: int = opt(17, "log2 of the per-level hash-table size T (paper: 19)")
+    n_min: int = opt(16, "coarsest grid resolution N_min")
+    n_max: int = opt(1024, "finest grid resolution N_max (paper: 2048 x scene scale)")
+    hidden: int = opt(64, "width of the hidden layers of both MLPs")
+    geo_features: int = opt(15, "geometry-feature channels passed from the density to the colour MLP")
+    sh_degree: int = opt(3, "SH degree of the view-direction encoding (3 = the paper's 16 coefficients)")
+    rays_per_batch: int = opt(1024, "rays of the first training step")
+    samples_per_batch: int = opt(1 << 16, "target samples per step: the ray batch adapts (0 = fixed)")
+    march_steps: int = opt(256, "marching steps along the scene box diagonal (paper: 1024)")
+    cone_angle: float = opt(1 / 256, "unbounded scenes only: step grows as t * cone_angle")
+    disparity_from: float = opt(1.0, "unbounded: beyond this many box diagonals steps grow as t^2, linear in 1/t (0 = never)")
+    max_samples_per_ray: int = opt(512, "at most this many marched samples per ray, front to back (0 = no cap)")
+    background: str = opt("auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned")
+    occupancy_res: int = opt(64, "occupancy grid resolution (paper: 128)")
+    occupancy_every: int = opt(16, "steps between occupancy-grid updates")
+    occupancy_warmup: int = opt(64, "steps during which every cell is updated and kept occupied (paper: 256)")
+    occupancy_threshold: float = opt(0.01, "cells with opacity EMA below min(this, mean) are empty")
+    occupancy_decay: float = opt(0.9, "EMA decay per update of the cell opacities (paper: 0.95)")
+    occupancy_seed_dilation: int = opt(2, "start from the cells within this many of an SfM point in the box (-1 = all)")
+    eps_transmittance: float = opt(1e-4, "early ray termination threshold")
+    distortion: str = opt("auto", "auto (on for unbounded scenes) | on | off: mip-NeRF 360's distortion loss")
+    distortion_weight: float = opt(0.01, "its weight, on the near-to-far distance mapped to [0, 1]")
+    lr: float = opt(1e-2, "Adam learning rate (grid and MLPs)")
+    lr_final: float = opt(1e-3, "learning rate reached after lr_decay_steps (exponential decay)")
+    lr_decay_steps: int = opt(5000, "steps of the learning-rate decay")
+    weight_decay: float = opt(1e-6, "L2 on the MLP weights (not the grid)")
+    chunk: int = opt(1024, "rays per chunk when rendering images (1024 keeps the MLP activations in cache)")
+    default_steps: int = opt(2000, "steps when no stopping rule is given")
+    seed: int = opt(0, "seeds ray sampling, marching jitter and occupancy updates")
 
 
 PRESETS = {

@@ -21,6 +21,7 @@ from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import render_image
 from recon.models.schedules import exp_decay_lr
+from recon.options import opt
 from recon.volrend import (
     OccupancyGrid,
     ray_aabb_intersect,
@@ -32,26 +33,26 @@ from recon.volrend import (
 
 @dataclass(frozen=True)
 class PlenoxelConfig:
-    resolutions: tuple = (32, 64, 128, 256)  # coarse-to-fine lattice sizes
-    upsample_steps: tuple = (150, 500, 1500)  # steps at which the grid moves to the next resolution
-    sh_degree: int = 2  # spherical-harmonic degree of the colour
-    rays_per_batch: int = 4096  # rays of the first training step
-    samples_per_batch: int = 1 << 18  # target samples per step: the ray batch adapts (0 = fixed rays)
-    max_rays_per_batch: int = 16384  # upper bound of the adaptive ray batch
-    step_voxels: float = 0.5  # marching step, in voxels of the current lattice
-    lr_density: float = 0.1  # Adam learning rate of density (in per-voxel optical units)
-    lr_sh: float = 0.02  # Adam learning rate of SH coefficients
-    lr_decay_steps: int = 5000  # learning rates decay by 10x over this many steps (exponentially)
-    tv_density: float = 1e-3  # total-variation weight on density
-    tv_sh: float = 1e-3  # total-variation weight on SH coefficients
-    tv_fraction: float = 0.02  # fraction of voxels per step that the TV term samples
-    prune_density: float = 0.05  # voxels whose 3x3x3 neighbourhood stays below this density are pruned
-    occupancy_every: int = 16  # occupancy-grid update interval (steps)
-    occupancy_res: int = 64  # occupancy-grid resolution
-    cone_angle: float = 0.0  # >0 grows steps with distance (used for unbounded scenes)
-    eps_transmittance: float = 1e-4  # early ray termination threshold
-    chunk: int = 16384  # rays per chunk when rendering images
-    default_steps: int = 4000  # steps when no stopping rule is given
+    resolutions: tuple = opt((32, 64, 128, 256), "coarse-to-fine lattice sizes")
+    upsample_steps: tuple = opt((150, 500, 1500), "steps at which the grid moves to the next resolution")
+    sh_degree: int = opt(2, "spherical-harmonic degree of the colour")
+    rays_per_batch: int = opt(4096, "rays of the first training step")
+    samples_per_batch: int = opt(1 << 18, "target samples per step: the ray batch adapts (0 = fixed rays)")
+    max_rays_per_batch: int = opt(16384, "upper bound of the adaptive ray batch")
+    step_voxels: float = opt(0.5, "marching step, in voxels of the current lattice")
+    lr_density: float = opt(0.1, "Adam learning rate of density (in per-voxel optical units)")
+    lr_sh: float = opt(0.02, "Adam learning rate of SH coefficients")
+    lr_decay_steps: int = opt(5000, "learning rates decay by 10x over this many steps (exponentially)")
+    tv_density: float = opt(1e-3, "total-variation weight on density")
+    tv_sh: float = opt(1e-3, "total-variation weight on SH coefficients")
+    tv_fraction: float = opt(0.02, "fraction of voxels per step that the TV term samples")
+    prune_density: float = opt(0.05, "voxels whose 3x3x3 neighbourhood stays below this density are pruned")
+    occupancy_every: int = opt(16, "occupancy-grid update interval (steps)")
+    occupancy_res: int = opt(64, "occupancy-grid resolution")
+    cone_angle: float = opt(0.0, ">0 grows steps with distance (used for unbounded scenes)")
+    eps_transmittance: float = opt(1e-4, "early ray termination threshold")
+    chunk: int = opt(16384, "rays per chunk when rendering images")
+    default_steps: int = opt(4000, "steps when no stopping rule is given")
 
 
 class PlenoxelModel(Model):

@@ -27,6 +27,7 @@ METHOD_MODULES = {
     "3dgs": "recon.models.splatting",
 }
 METHOD_NAMES = list(METHOD_MODULES)
+MODEL_SCHEMA_VERSION = 1  # the layout of a saved model file (`save_model`)
 
 
 def import_methods() -> dict[str, MethodSpec]:
@@ -63,7 +64,8 @@ def save_model(path: Path, method: str, method_cfg: dict, model: Model) -> Path:
     """The trained model as one file: its method, its config and its state."""
     from recon.io.atomic import save_torch
 
-    save_torch({"method": method, "config": method_cfg, "state_dict": model.state_dict()}, path)
+    save_torch({"schema_version": MODEL_SCHEMA_VERSION, "method": method, "config": method_cfg,
+                "state_dict": model.state_dict()}, path)
     return path
 
 
@@ -72,6 +74,9 @@ def load_model(path: Path, scene: SceneInfo, device: str | torch.device = "cpu")
     import torch
 
     saved = torch.load(path, map_location="cpu", weights_only=True)
+    if saved.get("schema_version", 1) > MODEL_SCHEMA_VERSION:
+        raise ValueError(f"{path} was written by a newer recon (model schema_version "
+                         f"{saved['schema_version']}): upgrade recon")
     spec = method_spec(saved["method"])
     model = spec.build(spec.config_cls(**config_from_json(spec.config_cls, saved["config"])), scene)
     model.load_state_dict(saved["state_dict"])

@@ -50,6 +50,7 @@ from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.schedules import exp_decay_lr, set_lr
+from recon.options import opt
 from recon.volrend import surface_depth
 
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
@@ -61,52 +62,55 @@ SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0, "densify_stop": 0.7, "opacity_reset
                       "sh_degree_interval": 0.2}
 
 
+_DENSIFY = densify.DensifyStrategy  # the densification defaults have one source: the strategy
+
+
 @dataclass(frozen=True)
 class GaussiansConfig:
     """3D Gaussian splatting. Defaults are the reference's (the "paper" preset); "fast" rescales
     the schedules to a CPU run of a few thousand steps."""
 
-    init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
-    init_points: int = 100_000  # random initial Gaussians in the scene box
-    init_from_images: bool = False  # random init: sample the visual hull, colours from images
-    init_far_fraction: float = 0.5  # unbounded scenes: share of image init points in a far shell
-    init_far_factor: float = 3.0  # the far shell's outer / inner radius (inner: beyond the cameras)
-    init_ply: str = ""  # start from this INRIA splat PLY (world units, as `recon export` writes)
-    init_opacity: float = 0.1  # initial opacity of every Gaussian
-    sh_degree: int = 3  # largest SH degree of the colours
-    sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
-    near_plane: float = 0.01  # Gaussians with camera z <= this are culled
-    ssim_weight: float = 0.2  # lambda in (1 - lambda) L1 + lambda (1 - SSIM)
-    lr_means: float = 0.00016  # means lr at step 0, times the camera extent
-    lr_means_final: float = 0.0000016  # means lr after lr_decay_steps, times the camera extent
-    lr_decay_steps: int = 30_000  # steps of the exponential decay of the means lr
-    lr_sh_dc: float = 0.0025  # lr of the degree-0 SH coefficients
-    lr_sh_rest: float = 0.000125  # lr of the degree 1-3 SH coefficients (dc / 20)
-    lr_opacity: float = 0.05  # lr of the opacity logits
-    lr_scales: float = 0.005  # lr of the log-scales
-    lr_quats: float = 0.001  # lr of the quaternions
-    densify_grad_threshold: float = 0.0002  # mean NDC 2D-mean gradient that triggers densify
-    densify_dense_fraction: float = 0.01  # clone below this x extent (max scale), split above
-    densify_start: int = 500  # first densification step
-    densify_stop: int = 15_000  # no densification or opacity reset from this step
-    densify_interval: int = 100  # steps between densifications
-    opacity_reset_interval: int = 3000  # steps between opacity resets
-    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
-    prune_screen_fraction: float = 0.15  # prune if screen radius > this x image size (after a reset)
-    prune_world_fraction: float = 0.1  # prune if max scale > this x extent (after a reset)
-    max_gaussians: int = 3_000_000  # densification stops growing the count here
-    clone_opacity_correction: bool = False  # a clone and its original share the opacity (1 - sqrt(1 - o))
-    schedule_steps: int = 0  # the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)
-    c2f_factor: int = 1  # coarse-to-fine: the first steps fit targets downscaled by this (1 = off)
-    c2f_interval: int = 250  # coarse-to-fine: steps at each coarse level (the factor halves after each)
-    appearance: str = "off"  # per-image affine colour correction of the training photos: on | off | auto (on for unbounded captures)
-    lr_appearance: float = 0.001  # lr of the appearance corrections
-    pose_refine: bool = False  # learn an SE(3) correction of each training camera's pose
-    lr_pose: float = 0.0003  # lr of the pose corrections (radians and scene units) at pose_refine_start
-    lr_pose_final: float = 0.000003  # pose lr at lr_decay_steps (log-linear decay over its second half)
-    pose_refine_start: int = 0  # first step that moves the poses
-    seed: int = 0  # seeds random init, view order and split sampling
-    default_steps: int = 30_000  # steps when `recon train` is given no stopping rule
+    init: str = opt("sfm", "sfm (SceneInfo.points; random if there are none) | random")
+    init_points: int = opt(100_000, "random initial Gaussians in the scene box")
+    init_from_images: bool = opt(False, "random init: sample the visual hull, colours from images")
+    init_far_fraction: float = opt(0.5, "unbounded scenes: share of image init points in a far shell")
+    init_far_factor: float = opt(3.0, "the far shell's outer / inner radius (inner: beyond the cameras)")
+    init_ply: str = opt("", "start from this INRIA splat PLY (world units, as `recon export` writes)")
+    init_opacity: float = opt(0.1, "initial opacity of every Gaussian")
+    sh_degree: int = opt(3, "largest SH degree of the colours")
+    sh_degree_interval: int = opt(1000, "raise the active SH degree by one every this many steps")
+    near_plane: float = opt(0.01, "Gaussians with camera z <= this are culled")
+    ssim_weight: float = opt(0.2, "lambda in (1 - lambda) L1 + lambda (1 - SSIM)")
+    lr_means: float = opt(0.00016, "means lr at step 0, times the camera extent")
+    lr_means_final: float = opt(0.0000016, "means lr after lr_decay_steps, times the camera extent")
+    lr_decay_steps: int = opt(30_000, "steps of the exponential decay of the means lr")
+    lr_sh_dc: float = opt(0.0025, "lr of the degree-0 SH coefficients")
+    lr_sh_rest: float = opt(0.000125, "lr of the degree 1-3 SH coefficients (dc / 20)")
+    lr_opacity: float = opt(0.05, "lr of the opacity logits")
+    lr_scales: float = opt(0.005, "lr of the log-scales")
+    lr_quats: float = opt(0.001, "lr of the quaternions")
+    densify_grad_threshold: float = opt(_DENSIFY.grad_threshold, "mean NDC 2D-mean gradient that triggers densify")
+    densify_dense_fraction: float = opt(_DENSIFY.dense_fraction, "clone below this x extent (max scale), split above")
+    densify_start: int = opt(_DENSIFY.start, "first densification step")
+    densify_stop: int = opt(_DENSIFY.stop, "no densification or opacity reset from this step")
+    densify_interval: int = opt(_DENSIFY.interval, "steps between densifications")
+    opacity_reset_interval: int = opt(_DENSIFY.reset_interval, "steps between opacity resets")
+    prune_opacity: float = opt(_DENSIFY.prune_opacity, "prune Gaussians less opaque than this")
+    prune_screen_fraction: float = opt(_DENSIFY.prune_screen_fraction, "prune if screen radius > this x image size (after a reset)")
+    prune_world_fraction: float = opt(_DENSIFY.prune_world_fraction, "prune if max scale > this x extent (after a reset)")
+    max_gaussians: int = opt(_DENSIFY.max_gaussians, "densification stops growing the count here")
+    clone_opacity_correction: bool = opt(_DENSIFY.clone_opacity_correction, "a clone and its original share the opacity (1 - sqrt(1 - o))")
+    schedule_steps: int = opt(0, "the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)")
+    c2f_factor: int = opt(1, "coarse-to-fine: the first steps fit targets downscaled by this (1 = off)")
+    c2f_interval: int = opt(250, "coarse-to-fine: steps at each coarse level (the factor halves after each)")
+    appearance: str = opt("off", "per-image affine colour correction of the training photos: on | off | auto (on for unbounded captures)")
+    lr_appearance: float = opt(0.001, "lr of the appearance corrections")
+    pose_refine: bool = opt(False, "learn an SE(3) correction of each training camera's pose")
+    lr_pose: float = opt(0.0003, "lr of the pose corrections (radians and scene units) at pose_refine_start")
+    lr_pose_final: float = opt(0.000003, "pose lr at lr_decay_steps (log-linear decay over its second half)")
+    pose_refine_start: int = opt(0, "first step that moves the poses")
+    seed: int = opt(0, "seeds random init, view order and split sampling")
+    default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
 
 
 PRESETS = {

@@ -14,6 +14,7 @@ from recon.cameras.cameras import Cameras
 from recon.io.exr import write_depth_exr
 from recon.io.images import to_uint8, write_png
 from recon.models.registry import pick_device
+from recon.options import opt
 from recon.render.paths import interpolate_path, orbit_path, spiral_path
 from recon.render.views import render_view
 from recon.train.resolution import output_levels
@@ -24,14 +25,15 @@ from recon.workspace.scene import level_size
 
 @dataclass(frozen=True)
 class RenderConfig:
-    split: str = "test"  # dataset split to render (when no path is given)
-    path: str = ""  # orbit | spiral | interpolate: a camera path instead of a split
-    frames: int = 60  # frames of the camera path
-    video: bool = False  # also write video.mp4
-    fps: int = 30  # video frame rate
-    max_side: int = 0  # render at the pyramid level whose longer side fits N px (0 = the run's training level)
-    downscale: int = 0  # render at the sfm images' size divided by K (0 = the run's training level)
-    device: str = "auto"  # auto | cpu | cuda
+    split: str = opt("test", "dataset views to render (ignored with --path)",
+                     choices=("test", "train", "val"))
+    path: str = opt("", "a camera path instead of a split", choices=("", "orbit", "spiral", "interpolate"))
+    frames: int = opt(60, "frames of the camera path")
+    video: bool = opt(False, "also write video.mp4")
+    fps: int = opt(30, "video frame rate")
+    max_side: int = opt(0, "render at the pyramid level whose longer side fits N px (0 = the run's training level)")
+    downscale: int = opt(0, "render at the sfm images' size divided by K (0 = the run's training level)")
+    device: str = opt("auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda"))
 
 
 def path_cameras(scene, kind: str, frames: int, device, downscale: int = 1) -> tuple[Cameras, list[str]]:

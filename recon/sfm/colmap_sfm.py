@@ -21,8 +21,9 @@ import pycolmap
 from recon.sfm import colmap_diagnose as diagnose
 from recon.sfm import colmap_retry
 from recon.sfm import colmap_steps as steps
+from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.colmap_report import build_report
-from recon.sfm.colmap_steps import Attempt, AttemptOptions, PhaseTimer, Progress, SfmConfig
+from recon.sfm.colmap_steps import Attempt, AttemptOptions, PhaseTimer, Progress
 from recon.sfm.photos import PhotoSet, prepare_photos
 
 MATCHERS = ("auto", "exhaustive", "sequential")

@@ -263,30 +263,6 @@ def undistort(
     return output
 
 
-@dataclass(frozen=True)
-class SfmConfig:
-    """Options of `run_sfm` (one CLI flag each; the comment after a field is its help).
-
-    SIFT keypoints found on the downscaled image are rescaled to full resolution. At 1600 px
-    or more SIFT skips its 2x-upsampled first octave (4x cheaper, ~3000 keypoints per phone
-    photo); on the fox capture (67 photos 1080x1920) this matched the accuracy of 1200 px with
-    upsampling (0.12 deg, 0.09 % of the camera spread) for 60 % of the CPU time. Matching
-    cost grows with `max_num_features` squared per pair and with the number of pairs.
-    """
-
-    max_image_size: int = 1600  # SIFT runs on photos downscaled to this longer side (px)
-    max_num_features: int = 4096  # SIFT keypoints kept per image
-    matcher: str = "auto"  # auto | exhaustive | sequential (auto: exhaustive up to 100 photos)
-    mapper: str = "incremental"  # incremental (COLMAP) | global (GLOMAP)
-    camera_model: str = "SIMPLE_RADIAL"  # COLMAP camera model: SIMPLE_RADIAL, OPENCV, PINHOLE...
-    single_camera: bool = True  # one camera shared by all photos of one size (one device)
-    try_harder: bool = True  # retry with more features / other matcher if photos stay out
-    min_image_side: int = 64  # photos with a shorter side below this (px) are skipped
-    seed: int = 0  # RANSAC and mapper seed (runs repeat bit for bit only with num_threads=1)
-    num_threads: int = -1  # COLMAP threads (-1: all cores)
-    verbose: bool = False  # show COLMAP's own log lines
-
-
 class PhaseTimer:
     """Wall and process-CPU seconds per phase; CPU time (all threads) stays meaningful when
     other jobs share the cores and stretch wall time."""

@@ -16,6 +16,7 @@ import numpy as np
 
 from recon.io.images import composite, read_image, resize_area, write_png
 from recon.io.ply import write_points_ply
+from recon.options import opt
 from recon.sfm.normalize import normalize_scene
 from recon.sfm.sources import PosedImages, SourceError
 
@@ -24,10 +25,12 @@ BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 @dataclass(frozen=True)
 class SceneConfig:
-    downscale: int = 1  # integer factor; images are area-resampled and intrinsics scaled exactly
-    background: str = "auto"  # white | black | auto (white when the input has alpha, else unused)
-    scene: str = "auto"  # bounded | unbounded | auto (bounded when the input has alpha)
-    holdout_every: int = 8  # every N-th image is a test view unless the dataset defines a split
+    downscale: int = opt(1, "integer factor; images are area-resampled and intrinsics scaled exactly")
+    background: str = opt("auto", "colour that transparent pixels are composited on (auto: white)",
+                          choices=("auto", "white", "black"))
+    scene: str = opt("auto", "bounded object (box) or unbounded capture (contraction); auto: bounded "
+                     "when the images have alpha", choices=("auto", "bounded", "unbounded"))
+    holdout_every: int = opt(8, "every N-th image is a test view unless the dataset defines a split")
 
 
 def undistort(img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,11 +11,13 @@ import torch
 from recon.io.atomic import atomic_write_json, save_torch
 from recon.workspace.hashing import hash_file
 
+CHECKPOINT_SCHEMA_VERSION = 1  # the layout of a checkpoint file's payload
+
 
 def save_checkpoint(directory: Path, step: int, payload: dict, keep: int) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"step_{step:08d}.pt"
-    save_torch(payload, path)
+    save_torch({"schema_version": CHECKPOINT_SCHEMA_VERSION, **payload}, path)
     index = _read_index(directory)
     index = [e for e in index if e["file"] != path.name] + [{"file": path.name, "step": step,
                                                               "hash": hash_file(path)}]
@@ -41,7 +43,12 @@ def load_latest_checkpoint(directory: Path, log=print) -> dict | None:
             log(f"checkpoint {path.name} is missing or corrupt (checksum mismatch); trying an older one")
             continue
         try:
-            return torch.load(path, map_location="cpu", weights_only=True)
+            payload = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:  # noqa: BLE001 - any unreadable file is treated as corrupt
             log(f"checkpoint {path.name} cannot be read ({e}); trying an older one")
+            continue
+        if payload.get("schema_version", 1) > CHECKPOINT_SCHEMA_VERSION:
+            raise ValueError(f"checkpoint {path} was written by a newer recon "
+                             f"(schema_version {payload['schema_version']}): upgrade recon")
+        return payload
     return None

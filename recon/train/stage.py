@@ -28,7 +28,7 @@ from recon.train.resolution import (
 )
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
-from recon.workspace.workspace import software_versions
+from recon.workspace.workspace import RUN_SCHEMA_VERSION, software_versions
 
 MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
 ROLLBACK_LR_FACTOR = 0.5  # every rollback halves all learning rates for the rest of the process
@@ -164,7 +164,8 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     resolution = {"working": res.to_json(), "sfm_size": [sfm_w, sfm_h],
                   "periodic_eval": {"downscale": k_eval,
                                     "size": list(level_size(sfm_w, sfm_h, k_eval))}}
-    run_doc = {"run": run, "method": spec.name, "preset": cfg.preset, "seed": cfg.seed,
+    run_doc = {"schema_version": RUN_SCHEMA_VERSION, "run": run, "method": spec.name,
+               "preset": cfg.preset, "seed": cfg.seed,
                "config": asdict(method_cfg), "train": asdict(cfg), "resolution": resolution,
                "versions": software_versions(),
                "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "status": "running"}

@@ -9,7 +9,7 @@ import torch
 from recon.models.base import Model
 from recon.models.registry import load_model
 from recon.workspace.scene import Scene, load_scene
-from recon.workspace.workspace import Workspace, WorkspaceError
+from recon.workspace.workspace import RUN_SCHEMA_VERSION, Workspace, WorkspaceError
 
 
 def load_run(ws: Workspace, run: str, device: str | torch.device = "cpu") -> tuple[Model, Scene, dict]:
@@ -20,6 +20,9 @@ def load_run(ws: Workspace, run: str, device: str | torch.device = "cpu") -> tup
     path = ws.model_path(run)
     if not path.exists():
         raise WorkspaceError(f"run '{run}' has no finished model yet (train it or resume it)")
+    run_doc = json.loads(ws.run_json(run).read_text())
+    if run_doc.get("schema_version", 1) > RUN_SCHEMA_VERSION:
+        raise WorkspaceError(f"{ws.run_json(run)} was written by a newer recon (schema_version "
+                             f"{run_doc['schema_version']}): upgrade recon")
     scene = load_scene(ws)
-    model = load_model(path, scene.info, device)
-    return model, scene, json.loads(ws.run_json(run).read_text())
+    return load_model(path, scene.info, device), scene, run_doc

@@ -30,6 +30,7 @@ from recon.io.atomic import atomic_write_json
 from recon.workspace.hashing import hash_tree
 
 SCHEMA_VERSION = 1
+RUN_SCHEMA_VERSION = 1  # the layout of runs/RUN/run.json
 
 # Migrations from older schemas: MIGRATIONS[v] turns a version-v document into version v+1.
 MIGRATIONS: dict[int, callable] = {}
