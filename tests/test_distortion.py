@@ -3,7 +3,7 @@ and gradients, and its limiting cases."""
 
 import torch
 
-from recon.volrend.distortion import distortion_loss, distortion_loss_dense
+from recon.volrend.distortion import distortion_loss, distortion_loss_reference
 
 
 def test_worked_example():
@@ -18,14 +18,14 @@ def test_packed_prefix_sums_match_the_pairwise_definition_on_values_and_gradient
     edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64), -1).values
     w = torch.rand(R, S, generator=g, dtype=torch.float64)
     w = (w / w.sum(-1, keepdim=True) * torch.rand(R, 1, generator=g, dtype=torch.float64)).requires_grad_()
-    dense = distortion_loss_dense(w, edges[:, :-1], edges[:, 1:])
+    dense = distortion_loss_reference(w, edges[:, :-1], edges[:, 1:])
     (g_dense,) = torch.autograd.grad(dense.sum(), w)
     # packed: drop some samples (as occupancy skipping does) from both layouts alike
     keep = torch.rand(R, S, generator=g) > 0.3
     keep[3] = False  # a ray without any sample
     ri = torch.arange(R)[:, None].expand(R, S)[keep]
     packed = distortion_loss(w[keep], edges[:, :-1][keep], edges[:, 1:][keep], ri, R)
-    masked = distortion_loss_dense(w * keep, edges[:, :-1], edges[:, 1:])
+    masked = distortion_loss_reference(w * keep, edges[:, :-1], edges[:, 1:])
     torch.testing.assert_close(packed, masked)
     assert packed[3] == 0
     full = distortion_loss(w.reshape(-1), edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1),

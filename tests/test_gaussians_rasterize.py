@@ -8,8 +8,8 @@ import torch
 
 from recon.gaussians.projection import conic_from_cov2d, radius_3sigma
 from recon.gaussians.rasterize import ALPHA_MAX, T_MIN, rasterize_features
-from recon.gaussians.rasterize_packed import rasterize_features_packed
-from recon.gaussians.rasterize_ref import rasterize_features_ref
+from recon.gaussians.rasterize_reference import rasterize_features_reference
+from recon.gaussians.rasterize_torch import rasterize_features_torch
 from recon.gaussians.tiles import bin_gaussians, bin_gaussians_sorted, tile_bounds
 
 F64 = torch.float64
@@ -35,7 +35,7 @@ def compare(splats, W, H, atol=1e-10):
     means2d, conics, opacities, features, radii, depths = splats
     leaves = [t.clone().requires_grad_() for t in (means2d, conics, opacities, features)]
     fast = rasterize_features(*leaves, radii, depths, W, H)
-    ref = rasterize_features_ref(*leaves, radii, depths, W, H)
+    ref = rasterize_features_reference(*leaves, radii, depths, W, H)
     for a, b in zip(fast, ref):
         assert torch.allclose(a, b, atol=atol, rtol=0), (a - b).abs().max()
     gen = torch.Generator().manual_seed(123)
@@ -67,7 +67,7 @@ def test_opaque_stack_terminates_early_like_the_reference():
 def test_float32_matches_float64_reference():
     splats = random_splats(100, 33, 40, seed=5)
     fast = rasterize_features(*[t.float() for t in splats[:4]], splats[4], splats[5], 33, 40)
-    ref = rasterize_features_ref(*splats, 33, 40)
+    ref = rasterize_features_reference(*splats, 33, 40)
     assert torch.allclose(fast[0].double(), ref[0], atol=1e-4)
     assert torch.allclose(fast[1].double(), ref[1], atol=1e-4)
 
@@ -167,8 +167,8 @@ def test_packed_torch_rasterizer_matches_reference(G, W, H, seed):
     """The non-CPU path (segmented log-space cumsum over the tile lists), run on the CPU."""
     means2d, conics, opacities, features, radii, depths = random_splats(G, W, H, seed=seed)
     leaves = [t.clone().requires_grad_() for t in (means2d, conics, opacities, features)]
-    packed = rasterize_features_packed(*leaves, radii, depths, W, H)
-    ref = rasterize_features_ref(*leaves, radii, depths, W, H)
+    packed = rasterize_features_torch(*leaves, radii, depths, W, H)
+    ref = rasterize_features_reference(*leaves, radii, depths, W, H)
     for a, b in zip(packed, ref):
         assert torch.allclose(a, b, atol=1e-10)
     weights = [torch.randn(t.shape, dtype=F64) for t in ref]
@@ -180,7 +180,7 @@ def test_packed_torch_rasterizer_matches_reference(G, W, H, seed):
 
 def test_packed_rasterizer_terminates_early_like_the_reference():
     splats = random_splats(80, 40, 24, seed=4, opacity=(0.9, 1.0), sigma=8.0)
-    packed = rasterize_features_packed(*splats, 40, 24)
-    ref = rasterize_features_ref(*splats, 40, 24)
+    packed = rasterize_features_torch(*splats, 40, 24)
+    ref = rasterize_features_reference(*splats, 40, 24)
     assert torch.allclose(packed[0], ref[0], atol=1e-10)
     assert torch.allclose(packed[1], ref[1], atol=1e-12)

@@ -7,7 +7,7 @@ import torch
 
 from recon.cameras import Cameras
 from recon.gaussians.rasterize import rasterize_features
-from recon.gaussians.rasterize_ref import rasterize_features_ref
+from recon.gaussians.rasterize_reference import rasterize_features_reference
 from recon.gaussians.render import composite_rgbd, project_splats
 
 F64 = torch.float64
@@ -43,7 +43,7 @@ def test_gradients_of_every_parameter_match_the_reference():
     cam = camera()
     params = {k: v.requires_grad_() for k, v in random_gaussians(40).items()}
     fast = render_with(rasterize_features, params, cam)
-    ref = render_with(rasterize_features_ref, params, cam)
+    ref = render_with(rasterize_features_reference, params, cam)
     assert torch.allclose(fast[0], ref[0], atol=1e-10) and torch.allclose(fast[1], ref[1], atol=1e-10)
     gen = torch.Generator().manual_seed(1)
     w_img = torch.randn(fast[0].shape, generator=gen, dtype=F64)

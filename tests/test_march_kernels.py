@@ -28,7 +28,7 @@ def test_numba_march_matches_occupancy_grid_sample(unbounded, cone, disparity_fr
     def to_unit(x):
         return scene_to_unit_cube(x, aabb, unbounded)
 
-    ref = grid.sample(origins, dirs, t_min, t_max, to_unit, step, cone, u, disparity_from=disparity_from)
+    ref = grid.march_torch(origins, dirs, t_min, t_max, to_unit, step, cone, u, disparity_from=disparity_from)
     fast = march_occupied(origins, dirs, t_min, t_max, grid.occupied, res, aabb, unbounded, step, cone, u,
                           disparity_from=disparity_from)
     assert ref[0].numel() > 100
@@ -59,8 +59,8 @@ def test_numba_march_cap_matches_the_torch_twin_and_keeps_the_first_samples(unbo
     def to_unit(x):
         return scene_to_unit_cube(x, aabb.double(), unbounded)
 
-    full = grid.sample(origins, dirs, t_min, t_max, to_unit, step, cone, u)
-    ref = grid.sample(origins, dirs, t_min, t_max, to_unit, step, cone, u, max_samples=cap)
+    full = grid.march_torch(origins, dirs, t_min, t_max, to_unit, step, cone, u)
+    ref = grid.march_torch(origins, dirs, t_min, t_max, to_unit, step, cone, u, max_samples=cap)
     fast = march_occupied(origins, dirs, t_min, t_max, grid.occupied, res, aabb, unbounded, step, cone, u,
                           max_samples=cap)
     counts = torch.bincount(fast[0], minlength=R)

@@ -50,7 +50,7 @@ def _render_sphere(cameras: Cameras, background: float) -> tuple[torch.Tensor, t
     return torch.stack(depths), torch.stack(rgbs)
 
 
-def _project_tsdf_slow(points, cameras, depths, rgbs, trunc):
+def _project_tsdf_reference(points, cameras, depths, rgbs, trunc):
     """One view at a time with explicit pinhole arithmetic: the twin of `project_tsdf`."""
     n = len(points)
     s_t, s_w, s_v = (torch.zeros(n, dtype=points.dtype) for _ in range(3))
@@ -85,7 +85,7 @@ def test_project_tsdf_matches_slow_twin():
     points = CENTER + 0.7 * (2 * torch.rand(400, 3, generator=g, dtype=torch.float64) - 1)
     points = torch.cat([points, cameras.centers])  # z = 0, u = v = NaN: must not count
     fast = project_tsdf(points, cameras, depths, rgbs, truncation=0.1)
-    slow = _project_tsdf_slow(points, cameras, depths, rgbs, 0.1)
+    slow = _project_tsdf_reference(points, cameras, depths, rgbs, 0.1)
     for a, b in zip(fast, slow):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     assert slow[1].sum() > 100 and slow[3].sum() > 10  # the comparison saw real observations

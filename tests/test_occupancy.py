@@ -135,7 +135,7 @@ def test_skipping_renders_like_dense_sampling():
     x = o[dri] + (0.5 * (t0 + t1))[:, None] * d[dri]
     dense = volume_render(cube_density(x), sphere_colour(x), t0, t1, dri, R, background=bg)
     to_unit = lambda p: scene_to_unit_cube(p, AABB, False)
-    ri, s, e = grid.sample(o, d, t_min, t_max, to_unit, step)
+    ri, s, e = grid.march_torch(o, d, t_min, t_max, to_unit, step)
     xm = o[ri] + (0.5 * (s + e))[:, None] * d[ri]
     sig = cube_density(xm)
     keep = terminated_mask(sig, s, e, ri, eps=1e-4)
@@ -172,7 +172,7 @@ def test_march_dispatch_equals_sample_and_spans_hold_every_occupied_sample():
     o, d = rays()
     t_min, t_max, _ = ray_aabb_intersect(o, d, AABB)
     u = torch.rand(o.shape[0], generator=torch.Generator().manual_seed(1))
-    ref = grid.sample(o, d, t_min, t_max, lambda p: scene_to_unit_cube(p, AABB, False), step, 0.0, u)
+    ref = grid.march_torch(o, d, t_min, t_max, lambda p: scene_to_unit_cube(p, AABB, False), step, 0.0, u)
     ri, s, e = grid.march(o, d, t_min, t_max, AABB, False, step, 0.0, u)
     assert torch.equal(ri, ref[0]) and torch.allclose(s, ref[1]) and torch.allclose(e, ref[2])
     lo, hi = ray_spans(ri, s, e, o.shape[0])

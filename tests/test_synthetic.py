@@ -23,7 +23,7 @@ from recon.synthetic.raster import (
     front_facing,
     interpolate,
     rasterize,
-    rasterize_slow,
+    rasterize_reference,
     transform_points,
 )
 from recon.synthetic.scene import (
@@ -126,7 +126,7 @@ def test_matches_brute_force_ray_casting(seed):
     K, cam_from_world = _K(30.0, 28.0, 16.0, 11.0), _random_pose(seed)
     points_in_world = _world_from_cam_points(points, cam_from_world)
     frags = rasterize(points_in_world, faces, K, cam_from_world, 32, 24, max_candidates=97)
-    face, depth = rasterize_slow(points_in_world, faces, K, cam_from_world, 32, 24)
+    face, depth = rasterize_reference(points_in_world, faces, K, cam_from_world, 32, 24)
     assert frags.mask.sum() > 200  # the test sees real overlap, not an empty image
     assert torch.equal(frags.face_index, face)
     torch.testing.assert_close(frags.depth, depth, rtol=1e-10, atol=0)

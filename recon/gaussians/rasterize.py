@@ -12,8 +12,8 @@ Tiles run in parallel (`prange` over interleaved tile chunks); within a tile eac
 only the pixels inside its alpha >= 1/255 ellipse d^T conic d <= 2 ln(255 o), row by row and
 slightly widened (an exact bound: it changes speed, not results), with exp evaluated by an
 exact multiplicative recurrence along each row. Backward gradients go to one buffer per thread
-chunk, reduced once (deterministic for a given thread count). `rasterize_ref.py` is the slow
-twin with the same semantics, `rasterize_packed.py` the vectorised torch version used on other
+chunk, reduced once (deterministic for a given thread count). `rasterize_reference.py` is the slow
+twin with the same semantics, `rasterize_torch.py` the vectorised torch version used on other
 devices; tests compare all three on outputs and gradients.
 """
 
@@ -348,12 +348,12 @@ def rasterize_features(means2d: Tensor, conics: Tensor, opacities: Tensor, featu
 
     means2d (G, 2), conics (G, 3), opacities (G,), features (G, D), radii (G,) (0 = culled),
     depths (G,) -> image (H, W, D), transmittance (H, W). The numba kernels run on CPU tensors;
-    other devices use the vectorised torch version `rasterize_packed.rasterize_features_packed`.
+    other devices use the vectorised torch version `rasterize_torch.rasterize_features_torch`.
     """
     if means2d.device.type != "cpu":
-        from recon.gaussians.rasterize_packed import rasterize_features_packed
+        from recon.gaussians.rasterize_torch import rasterize_features_torch
 
-        return rasterize_features_packed(means2d, conics, opacities, features, radii, depths,
+        return rasterize_features_torch(means2d, conics, opacities, features, radii, depths,
                                          width, height)
     with record_function("3dgs.bin"):
         bounds = tile_bounds(means2d, radii, width, height)

@@ -19,6 +19,7 @@ from recon.io.ply import write_points_ply
 from recon.options import opt
 from recon.sfm.normalize import normalize_scene
 from recon.sfm.sources import PosedImages, SourceError
+from recon.workspace import Workspace
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
@@ -128,10 +129,10 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
         "frames": frames_json,
     }
     sfm_out.mkdir(parents=True, exist_ok=True)
-    (sfm_out / "cameras.json").write_text(json.dumps(cameras, indent=1) + "\n")
-    write_colmap_model(sfm_out / "sparse", records, Ks, world_from_cam, posed)
+    (sfm_out / Workspace.SFM_CAMERAS).write_text(json.dumps(cameras, indent=1) + "\n")
+    write_colmap_model(sfm_out / Workspace.SFM_SPARSE, records, Ks, world_from_cam, posed)
     if posed.points is not None and len(posed.points):
-        write_points_ply(sfm_out / "points.ply", posed.points, posed.point_colors)
+        write_points_ply(sfm_out / Workspace.SFM_POINTS, posed.points, posed.point_colors)
     splits = {}
     for f in posed.frames:
         splits[f.split] = splits.get(f.split, 0) + 1

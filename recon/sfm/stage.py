@@ -24,7 +24,7 @@ def write_sfm_stage(ws: Workspace, posed: PosedImages, cfg: SceneConfig, inputs:
         with atomic_dir(ws.images_dir) as images_tmp, atomic_dir(ws.sfm_dir) as sfm_tmp:
             summary = write_scene(posed, cfg, images_tmp, sfm_tmp, ws.rel(ws.images_dir), progress)
             full_report = {**(report or {}), **summary}
-            (sfm_tmp / "report.json").write_text(json.dumps(full_report, indent=2) + "\n")
+            (sfm_tmp / Workspace.SFM_REPORT).write_text(json.dumps(full_report, indent=2) + "\n")
             for name, src in (copy_into_sfm or {}).items():
                 dst = sfm_tmp / name
                 dst.parent.mkdir(parents=True, exist_ok=True)

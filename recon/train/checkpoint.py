@@ -14,6 +14,11 @@ from recon.workspace.hashing import hash_file
 CHECKPOINT_SCHEMA_VERSION = 1  # the layout of a checkpoint file's payload
 
 
+def has_checkpoint(directory: Path) -> bool:
+    """Whether `directory` holds an index of checkpoints (something to resume from)."""
+    return (directory / "index.json").exists()
+
+
 def save_checkpoint(directory: Path, step: int, payload: dict, keep: int) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"step_{step:08d}.pt"

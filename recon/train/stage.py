@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from recon.models.registry import config_from_json, import_methods, pick_device, save_model
-from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint
+from recon.train.checkpoint import has_checkpoint, load_latest_checkpoint, save_checkpoint
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
 from recon.train.resolution import (
@@ -137,7 +137,7 @@ def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progre
 def discard_unresumable_run(ws: Workspace, run: str) -> None:
     """A new run that failed before any checkpoint landed (disk full, unreadable scene) holds
     nothing to resume: remove it so a failed command leaves the workspace as it was."""
-    if not (ws.checkpoints_dir(run) / "index.json").exists():
+    if not has_checkpoint(ws.checkpoints_dir(run)):
         shutil.rmtree(ws.run_dir(run), ignore_errors=True)
 
 

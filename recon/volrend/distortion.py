@@ -31,7 +31,7 @@ def distortion_loss(weights: Tensor, s_starts: Tensor, s_ends: Tensor, ray_indic
     return accumulate_along_rays(per_sample, None, ray_indices, n_rays)[:, 0]
 
 
-def distortion_loss_dense(weights: Tensor, s_starts: Tensor, s_ends: Tensor) -> Tensor:
+def distortion_loss_reference(weights: Tensor, s_starts: Tensor, s_ends: Tensor) -> Tensor:
     """The same loss straight from its definition, O(S^2) per ray, for padded (R, S) intervals:
     the twin `distortion_loss` is tested against."""
     mid = 0.5 * (s_starts + s_ends)

@@ -1,4 +1,4 @@
-"""Fast CPU twin of `OccupancyGrid.sample` (numba): march every ray at a fixed (or
+"""Fast CPU twin of `OccupancyGrid.march_torch` (numba): march every ray at a fixed (or
 cone-growing) step and emit ONLY the intervals whose midpoint falls in an occupied cell,
 without materialising the dense list of all marching intervals first.
 

@@ -232,7 +232,7 @@ class OccupancyGrid(nn.Module):
     def occupancy_fraction(self) -> float:
         return self.occupied.float().mean().item()
 
-    def sample(
+    def march_torch(
         self,
         origins: Tensor,
         directions: Tensor,
@@ -273,11 +273,11 @@ class OccupancyGrid(nn.Module):
         max_samples: int = 0,
         disparity_from: float = math.inf,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """`sample` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
+        """`march_torch` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
         numba twin (`march_kernels.march_occupied`, never materialises the dense intervals),
-        elsewhere `sample` itself. Same packed (ray_indices, t_starts, t_ends)."""
+        elsewhere `march_torch`. Same packed (ray_indices, t_starts, t_ends)."""
         if origins.device.type == "cpu":
             return march_occupied(origins, directions, t_min, t_max, self.occupied, self.resolution, aabb,
                                   unbounded, step, cone_angle, u, max_samples, disparity_from)
-        return self.sample(origins, directions, t_min, t_max, lambda x: scene_to_unit_cube(x, aabb, unbounded),
+        return self.march_torch(origins, directions, t_min, t_max, lambda x: scene_to_unit_cube(x, aabb, unbounded),
                            step, cone_angle, u, max_samples, disparity_from)

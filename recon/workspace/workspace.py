@@ -93,6 +93,9 @@ class Workspace:
         return ws
 
     JSON_NAME = "workspace.json"  # the file that makes a directory a workspace
+    # names inside WS/sfm/, also used while the sfm stage writes them into its staging copy
+    SFM_CAMERAS, SFM_POINTS, SFM_REPORT = "cameras.json", "points.ply", "report.json"
+    SFM_SPARSE, SFM_FRAMES = "sparse", "frames"
 
     @property
     def json_path(self) -> Path:
@@ -141,23 +144,23 @@ class Workspace:
     @property
     def frames_dir(self) -> Path:
         """Frames taken from the input video(s), as `<video stem>_<frame index>.png`."""
-        return self.sfm_dir / "frames"
+        return self.sfm_dir / self.SFM_FRAMES
 
     @property
     def cameras_json(self) -> Path:
-        return self.sfm_dir / "cameras.json"
+        return self.sfm_dir / self.SFM_CAMERAS
 
     @property
     def sparse_dir(self) -> Path:
-        return self.sfm_dir / "sparse"
+        return self.sfm_dir / self.SFM_SPARSE
 
     @property
     def points_ply(self) -> Path:
-        return self.sfm_dir / "points.ply"
+        return self.sfm_dir / self.SFM_POINTS
 
     @property
     def sfm_report(self) -> Path:
-        return self.sfm_dir / "report.json"
+        return self.sfm_dir / self.SFM_REPORT
 
     @property
     def runs_dir(self) -> Path:

@@ -1,5 +1,5 @@
 """Vectorised pure-torch tile rasterizer for non-CPU devices: the same semantics as the dense
-twin (`rasterize_ref`) but over the (tile, depth)-sorted intersection list, so memory is
+twin (`rasterize_reference`) but over the (tile, depth)-sorted intersection list, so memory is
 O(intersections x 256) instead of O(H W G). Autograd does the backward.
 
 Every intersection (splat i listed in tile t) is evaluated at the 256 pixels of t. Within a
@@ -37,7 +37,7 @@ def _alphas(means2d, conics, opacities, gid, px, py, on_image) -> Tensor:
     return torch.where(keep, alpha, torch.zeros_like(alpha))
 
 
-def rasterize_features_packed(means2d: Tensor, conics: Tensor, opacities: Tensor,
+def rasterize_features_torch(means2d: Tensor, conics: Tensor, opacities: Tensor,
                               features: Tensor, radii: Tensor, depths: Tensor, width: int,
                               height: int) -> tuple[Tensor, Tensor]:
     """Same arguments and outputs as `rasterize.rasterize_features`: image (H, W, D),

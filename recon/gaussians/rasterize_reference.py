@@ -38,7 +38,7 @@ def composite_alphas(alpha: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
     return weights @ features, torch.exp(torch.log1p(-alpha).sum(-1))
 
 
-def rasterize_features_ref(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
+def rasterize_features_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
                            radii: Tensor, depths: Tensor, width: int, height: int,
                            ) -> tuple[Tensor, Tensor]:
     """Dense twin of `rasterize.rasterize_features`: same arguments, same outputs
