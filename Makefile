@@ -19,9 +19,10 @@ $(BIN)/recon: pyproject.toml
 test: lint
 	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile tests
 
-# ruff, and the layer order of pyproject.toml's import-linter contract
+# ruff (lint and format), and the layer order of pyproject.toml's import-linter contract
 lint: install
 	$(BIN)/ruff check recon tests pipelines
+	$(BIN)/ruff format --check recon tests pipelines
 	$(BIN)/lint-imports
 
 demo: install

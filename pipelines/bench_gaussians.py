@@ -27,8 +27,18 @@ from recon.models.base import SceneInfo, TrainData
 from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
 from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
-LABELS = ("project", "rasterize", "bin", "raster_forward", "loss", "backward", "raster_backward",
-          "project_backward", "optimizer", "densify")
+LABELS = (
+    "project",
+    "rasterize",
+    "bin",
+    "raster_forward",
+    "loss",
+    "backward",
+    "raster_backward",
+    "project_backward",
+    "optimizer",
+    "densify",
+)
 
 
 def median_ms(fn, reps: int) -> float:
@@ -54,20 +64,31 @@ def bench_render(gaussians: dict, camera: Cameras, reps: int) -> dict[str, float
         rgb, _ = composite_rgb(project_splats(params, camera, 3), bg)
         rgb.sum().backward()
 
-    return {"forward_ms": median_ms(forward, reps),
-            "forward_backward_ms": median_ms(forward_backward, reps)}
+    return {
+        "forward_ms": median_ms(forward, reps),
+        "forward_backward_ms": median_ms(forward_backward, reps),
+    }
 
 
 def training_setup(gaussians: dict, cameras: Cameras) -> tuple[GaussianModel, TrainData]:
     with torch.no_grad():
-        images = torch.stack([composite_rgb(project_splats(gaussians, cameras[i], 3),
-                                            torch.zeros(3))[0] for i in range(len(cameras))])
+        images = torch.stack(
+            [
+                composite_rgb(project_splats(gaussians, cameras[i], 3), torch.zeros(3))[0]
+                for i in range(len(cameras))
+            ]
+        )
     G = gaussians["means"].shape[0]
     gen = torch.Generator().manual_seed(1)
-    scene = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=False,
-                      background=torch.zeros(3), near=0.1, far=6.0,
-                      points=gaussians["means"] + 0.01 * torch.randn(G, 3, generator=gen),
-                      point_colors=torch.rand(G, 3, generator=gen))
+    scene = SceneInfo(
+        aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]),
+        unbounded=False,
+        background=torch.zeros(3),
+        near=0.1,
+        far=6.0,
+        points=gaussians["means"] + 0.01 * torch.randn(G, 3, generator=gen),
+        point_colors=torch.rand(G, 3, generator=gen),
+    )
     config = GaussiansConfig(**{**PRESETS["fast"], "densify_start": 10**9, "sh_degree_interval": 1})
     return GaussianModel(config, scene), TrainData(images.clamp(0, 1), cameras)
 
@@ -92,13 +113,18 @@ def profile_steps(model: GaussianModel, data: TrainData, first: int, steps: int)
             model.train_step(data, step)
     totals = {e.key: e.cpu_time_total for e in prof.key_averages()}
     split = {k: round(totals.get(f"3dgs.{k}", 0.0) / steps / 1000, 2) for k in LABELS}
-    split["backward_other"] = round(split["backward"] - split["raster_backward"]
-                                    - split["project_backward"], 2)
-    labelled = sum(split[k] for k in ("project", "rasterize", "loss", "backward", "optimizer",
-                                      "densify"))
+    split["backward_other"] = round(
+        split["backward"] - split["raster_backward"] - split["project_backward"], 2
+    )
+    labelled = sum(
+        split[k] for k in ("project", "rasterize", "loss", "backward", "optimizer", "densify")
+    )
     split["unlabelled"] = round(1000 / steps_per_s - labelled, 2)  # Python, logging, view pick
-    return {"steps_per_s": round(steps_per_s, 3), "ms_per_step_profiled": split,
-            "gaussians": model.num_gaussians}
+    return {
+        "steps_per_s": round(steps_per_s, 3),
+        "ms_per_step_profiled": split,
+        "gaussians": model.num_gaussians,
+    }
 
 
 def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str]) -> dict:
@@ -117,9 +143,13 @@ def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str
     for step in range(warmup):
         model.train_step(data, step)
     warm_s = time.perf_counter() - t0
-    return {"workspace": workspace, "warmup_steps": warmup, "warmup_s": round(warm_s, 1),
-            "size": [int(data.cameras.width[0]), int(data.cameras.height[0])],
-            **profile_steps(model, data, warmup, steps)}
+    return {
+        "workspace": workspace,
+        "warmup_steps": warmup,
+        "warmup_s": round(warm_s, 1),
+        "size": [int(data.cameras.width[0]), int(data.cameras.height[0])],
+        **profile_steps(model, data, warmup, steps),
+    }
 
 
 def main() -> None:
@@ -132,8 +162,13 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also write the results to this JSON file")
     parser.add_argument("--workspace", default=None, help="profile training on this workspace")
     parser.add_argument("--warmup", type=int, default=600, help="--workspace: steps before timing")
-    parser.add_argument("--set", dest="overrides", action="append", default=[],
-                        help="--workspace: override a config field, KEY=VALUE (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        help="--workspace: override a config field, KEY=VALUE (repeatable)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     numba.set_num_threads(args.threads)

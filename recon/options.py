@@ -41,8 +41,11 @@ def config_option(cls, name: str, *decls: str, **overrides: Any):
 
     f = config_field(cls, name)
     flag = f.metadata.get("flag", "--" + name.replace("_", "-"))
-    kwargs: dict[str, Any] = {"default": f.default, "show_default": True,
-                              "help": _sentence(f.metadata.get("help", ""))}
+    kwargs: dict[str, Any] = {
+        "default": f.default,
+        "show_default": True,
+        "help": _sentence(f.metadata.get("help", "")),
+    }
     if "choices" in f.metadata:
         kwargs["type"] = click.Choice(list(f.metadata["choices"]))
     if isinstance(f.default, bool) and not decls:

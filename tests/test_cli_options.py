@@ -23,8 +23,9 @@ COMMANDS = [
 ]
 
 
-@pytest.mark.parametrize("command, configs, not_options", COMMANDS,
-                         ids=[c[0].name for c in COMMANDS])
+@pytest.mark.parametrize(
+    "command, configs, not_options", COMMANDS, ids=[c[0].name for c in COMMANDS]
+)
 def test_options_take_default_and_help_from_the_config(command, configs, not_options):
     params = {p.name: p for p in command.params}
     for cls in configs:
@@ -32,7 +33,9 @@ def test_options_take_default_and_help_from_the_config(command, configs, not_opt
         for f in dataclasses.fields(cls):
             if f.name in not_options:
                 continue
-            assert f.name in params, f"{cls.__name__}.{f.name} has no option in `recon {command.name}`"
+            assert f.name in params, (
+                f"{cls.__name__}.{f.name} has no option in `recon {command.name}`"
+            )
             p = params[f.name]
             assert p.default == f.default, (f.name, p.default, f.default)
             assert p.help.lower().startswith(helps[f.name][:20].lower()), (f.name, p.help)

@@ -20,18 +20,28 @@ def _similarity(seed: int = 3) -> Similarity:
 
 
 def _scene(sim: Similarity | None) -> SceneInfo:
-    return SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=False,
-                     background=torch.tensor([1.0, 1.0, 1.0]), near=0.1, far=6.0,
-                     points=torch.rand(50, 3) * 2 - 1, point_colors=torch.rand(50, 3),
-                     scene_from_world=sim)
+    return SceneInfo(
+        aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]),
+        unbounded=False,
+        background=torch.tensor([1.0, 1.0, 1.0]),
+        near=0.1,
+        far=6.0,
+        points=torch.rand(50, 3) * 2 - 1,
+        point_colors=torch.rand(50, 3),
+        scene_from_world=sim,
+    )
 
 
 def _export_world_ply(model: GaussianModel, sim: Similarity, path) -> None:
     """What `recon export` writes: the scene-frame Gaussians in world units."""
     p = {k: v.detach().double().numpy() for k, v in model.params.items()}
-    g = {"means": p["means"], "quats": p["quats"], "log_scales": p["log_scales"],
-         "opacity_logits": p["opacity_logits"],
-         "sh": np.concatenate([p["sh_dc"], p["sh_rest"]], 1)}
+    g = {
+        "means": p["means"],
+        "quats": p["quats"],
+        "log_scales": p["log_scales"],
+        "opacity_logits": p["opacity_logits"],
+        "sh": np.concatenate([p["sh_dc"], p["sh_rest"]], 1),
+    }
     w = gaussians_to_world(g, sim.scale, sim.R, sim.t)
     write_splat_ply(path, w["means"], w["quats"], w["log_scales"], w["opacity_logits"], w["sh"])
 

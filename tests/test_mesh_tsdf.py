@@ -30,7 +30,10 @@ def _cube_corner_cameras(size: int = 96, distance: float = 2.2) -> Cameras:
     c = torch.full((8,), size / 2, dtype=torch.float64)
     n = torch.full((8,), size, dtype=torch.int64)
     return Cameras(
-        intrinsics_matrix(f, f, c, c), torch.stack([look_at(e, CENTER, torch.tensor([0.0, 0.0, 1.0])) for e in eyes]), n, n
+        intrinsics_matrix(f, f, c, c),
+        torch.stack([look_at(e, CENTER, torch.tensor([0.0, 0.0, 1.0])) for e in eyes]),
+        n,
+        n,
     )
 
 

@@ -27,8 +27,15 @@ def test_every_listed_method_registers_and_declares_its_capabilities():
 
 def test_a_model_file_from_a_newer_recon_is_refused(tmp_path):
     path = tmp_path / "model.pt"
-    torch.save({"schema_version": MODEL_SCHEMA_VERSION + 1, "method": "ngp", "config": {},
-                "state_dict": {}}, path)
+    torch.save(
+        {
+            "schema_version": MODEL_SCHEMA_VERSION + 1,
+            "method": "ngp",
+            "config": {},
+            "state_dict": {},
+        },
+        path,
+    )
     with pytest.raises(ValueError, match="newer recon"):
         load_model(path, scene=None)
 

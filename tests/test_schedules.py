@@ -27,7 +27,9 @@ def test_equals_the_log_linear_interpolation(step):
 
 def test_set_lr_all_groups_or_one_named_group():
     a, b = torch.nn.Parameter(torch.zeros(1)), torch.nn.Parameter(torch.zeros(1))
-    opt = torch.optim.Adam([{"params": [a], "name": "means"}, {"params": [b], "name": "sh"}], lr=1.0)
+    opt = torch.optim.Adam(
+        [{"params": [a], "name": "means"}, {"params": [b], "name": "sh"}], lr=1.0
+    )
     set_lr(opt, 0.5, "means")
     assert [g["lr"] for g in opt.param_groups] == [0.5, 1.0]
     set_lr(opt, 0.25)

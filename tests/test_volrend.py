@@ -122,7 +122,9 @@ def test_weights_plus_residual_is_one_and_gradients_finite(tau):
     t0 = torch.arange(S, dtype=torch.float32).expand(2, S)
     out = volume_render(sig, torch.rand(2, S, 3), t0, t0 + 1.0)
     residual = torch.exp(-(sig * 1.0).double().sum(-1))
-    torch.testing.assert_close(out.acc.double() + residual, torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        out.acc.double() + residual, torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0
+    )
     (out.rgb.sum() + out.depth.sum()).backward()
     assert torch.isfinite(sig.grad).all()
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.weights).all()
@@ -141,7 +143,9 @@ def test_gradcheck_float64_padded_and_packed():
     ri = torch.arange(3)[:, None].expand_as(mask)[mask]
 
     def padded(s, c):
-        out = volume_render(s, c, t0, t1, background=torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64))
+        out = volume_render(
+            s, c, t0, t1, background=torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+        )
         return out.rgb, out.depth
 
     def packed(s, c):
@@ -149,7 +153,9 @@ def test_gradcheck_float64_padded_and_packed():
         return out.rgb, out.acc
 
     assert torch.autograd.gradcheck(padded, (sig, rgb))
-    assert torch.autograd.gradcheck(packed, (sig[mask].detach().requires_grad_(), rgb[mask].detach().requires_grad_()))
+    assert torch.autograd.gradcheck(
+        packed, (sig[mask].detach().requires_grad_(), rgb[mask].detach().requires_grad_())
+    )
 
 
 def test_accumulate_packed_needs_n_rays_and_handles_empty_rays():
@@ -177,8 +183,12 @@ def test_continuous_limit_matches_beer_lambert():
     # constant density sigma on [0, L]: acc -> 1 - exp(-sigma L), depth -> closed form
     sigma, L, S = 1.3, 2.0, 20000
     t = torch.linspace(0, L, S + 1, dtype=torch.float64)
-    out = volume_render(torch.full((1, S), sigma, dtype=torch.float64), torch.ones(1, S, 3, dtype=torch.float64),
-                        t[None, :-1], t[None, 1:])
+    out = volume_render(
+        torch.full((1, S), sigma, dtype=torch.float64),
+        torch.ones(1, S, 3, dtype=torch.float64),
+        t[None, :-1],
+        t[None, 1:],
+    )
     assert out.acc.item() == pytest.approx(1 - math.exp(-sigma * L), rel=1e-9)
     exact_depth = (1 - math.exp(-sigma * L) * (1 + sigma * L)) / sigma  # int t sigma e^{-sigma t}
     assert out.depth.item() == pytest.approx(exact_depth, rel=1e-6)
@@ -222,8 +232,13 @@ def test_alpha_compositing_matches_the_cumprod_definition_padded_and_packed():
     torch.testing.assert_close(padded, expected, rtol=1e-12, atol=1e-14)
     rays = torch.arange(2).repeat_interleave(15)  # two rays of 15 samples, 8 pixels each
     packed, _ = alpha_compositing(alpha.T.contiguous(), rays, t_min=t_min)
-    split = torch.cat([alpha_compositing(alpha[:, :15], t_min=t_min)[0],
-                       alpha_compositing(alpha[:, 15:], t_min=t_min)[0]], dim=1)
+    split = torch.cat(
+        [
+            alpha_compositing(alpha[:, :15], t_min=t_min)[0],
+            alpha_compositing(alpha[:, 15:], t_min=t_min)[0],
+        ],
+        dim=1,
+    )
     torch.testing.assert_close(packed.T, split, rtol=1e-12, atol=1e-14)
 
 

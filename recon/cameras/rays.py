@@ -38,7 +38,9 @@ def pixel_centers(width: int, height: int, device=None, dtype=torch.float32) -> 
     return torch.stack([uu, vv], dim=-1)
 
 
-def rays_from_pixels(uv: Tensor, K: Tensor, world_from_cam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def rays_from_pixels(
+    uv: Tensor, K: Tensor, world_from_cam: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
     """World-space rays through pixels.
 
     uv: (..., 2); K: (..., 3, 3); world_from_cam: (..., 4, 4), broadcastable.

@@ -13,7 +13,9 @@ from recon.workspace import Workspace
 
 @click.command("eval")
 @workspace_option
-@click.option("--run", "runs", multiple=True, help="Run(s) to evaluate (default: every trained run).")
+@click.option(
+    "--run", "runs", multiple=True, help="Run(s) to evaluate (default: every trained run)."
+)
 @config_option(EvalConfig, "split")
 @config_option(EvalConfig, "every")
 @config_option(EvalConfig, "gt_mesh")
@@ -40,16 +42,24 @@ def command(workspace, runs, force, as_json, **options):
         return
     if "sfm" in results:
         p = results["sfm"]["pose"]
-        click.echo(f"eval: sfm poses vs {p['reference']}: {p['matched']} matched, median rotation error "
-                   f"{p['median_rotation_error_deg']:.3f} deg, median centre error {p['median_center_error_pct']:.3f} % "
-                   f"of the diagonal -> {ws.pose_accuracy_json}")
+        click.echo(
+            f"eval: sfm poses vs {p['reference']}: {p['matched']} matched, median rotation error "
+            f"{p['median_rotation_error_deg']:.3f} deg, median centre error {p['median_center_error_pct']:.3f} % "
+            f"of the diagonal -> {ws.pose_accuracy_json}"
+        )
         return
     for run, m in results.items():
         mean = m["mean"]
         lp = f"{mean['lpips']:.4f}" if "lpips" in mean else "unavailable"
         geo = m["geometry"]
-        g = (f", Chamfer {geo['chamfer']:.4g}, F-score {geo['fscore']:.3f}" if geo.get("status") == "ok" else "")
+        g = (
+            f", Chamfer {geo['chamfer']:.4g}, F-score {geo['fscore']:.3f}"
+            if geo.get("status") == "ok"
+            else ""
+        )
         w, h = m["resolution"]
-        click.echo(f"eval: {run} at {w}x{h}: PSNR {mean['psnr']:.2f} dB (border {mean['psnr_border']:.2f}), "
-                   f"SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}")
+        click.echo(
+            f"eval: {run} at {w}x{h}: PSNR {mean['psnr']:.2f} dB (border {mean['psnr_border']:.2f}), "
+            f"SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}"
+        )
     click.echo(f"report: {ws.report_md}  plot: {ws.speed_plot}")

@@ -13,11 +13,27 @@ from recon.workspace import Workspace
 @click.command("export")
 @workspace_option
 @click.option("--run", required=True, help="A run whose model has Gaussians (3dgs).")
-@click.option("--format", "fmt", default="ply", type=click.Choice(["ply"]), show_default=True,
-              help="ply: the INRIA splat PLY (x y z nx ny nz f_dc_* f_rest_* opacity scale_* rot_*).")
-@click.option("--frame", default="world", type=click.Choice(["world", "scene"]), show_default=True,
-              help="world: original units and axes (SH rotated exactly); scene: the normalized training frame.")
-@click.option("-o", "--output", type=click.Path(path_type=Path), help="Output path (default WS/runs/RUN/export/splat.ply).")
+@click.option(
+    "--format",
+    "fmt",
+    default="ply",
+    type=click.Choice(["ply"]),
+    show_default=True,
+    help="ply: the INRIA splat PLY (x y z nx ny nz f_dc_* f_rest_* opacity scale_* rot_*).",
+)
+@click.option(
+    "--frame",
+    default="world",
+    type=click.Choice(["world", "scene"]),
+    show_default=True,
+    help="world: original units and axes (SH rotated exactly); scene: the normalized training frame.",
+)
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(path_type=Path),
+    help="Output path (default WS/runs/RUN/export/splat.ply).",
+)
 @json_option
 def command(workspace, run, fmt, frame, output, as_json):
     """Export a Gaussian-splat run -> WS/runs/RUN/export/splat.ply (loadable by common splat viewers)."""

@@ -43,8 +43,15 @@ def cli(ctx: click.Context, verbose: bool) -> None:
 def _register_commands() -> None:
     from recon.cli import eval_cmd, export_cmd, mesh_cmd, render_cmd, sfm_cmd, status_cmd, train_cmd
 
-    for command in (sfm_cmd.sfm, train_cmd.command, render_cmd.command, mesh_cmd.command,
-                    eval_cmd.command, export_cmd.command, status_cmd.status):
+    for command in (
+        sfm_cmd.sfm,
+        train_cmd.command,
+        render_cmd.command,
+        mesh_cmd.command,
+        eval_cmd.command,
+        export_cmd.command,
+        status_cmd.status,
+    ):
         cli.add_command(command)
 
 

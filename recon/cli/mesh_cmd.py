@@ -33,5 +33,7 @@ def command(workspace, run, force, as_json, **options):
     if as_json:
         emit_json(result)
     else:
-        click.echo(f"mesh: {result['method']} {result.get('vertices')} vertices, {result.get('faces')} faces "
-                   f"in {result['seconds']:.1f} s -> {result['path']}")
+        click.echo(
+            f"mesh: {result['method']} {result.get('vertices')} vertices, {result.get('faces')} faces "
+            f"in {result['seconds']:.1f} s -> {result['path']}"
+        )

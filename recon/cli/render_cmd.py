@@ -37,5 +37,7 @@ def command(workspace, run, force, as_json, **options):
         emit_json(result)
     else:
         w, h = result["resolution"]
-        click.echo(f"render: {result['frames']} frames of {w}x{h} at {result['ms_per_frame']:.1f} ms/frame "
-                   f"-> {result['out']}")
+        click.echo(
+            f"render: {result['frames']} frames of {w}x{h} at {result['ms_per_frame']:.1f} ms/frame "
+            f"-> {result['out']}"
+        )

@@ -37,8 +37,9 @@ def new_or_existing_workspace(root: Path):
         raise
 
 
-def _photo_sfm(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress,
-               video) -> dict:
+def _photo_sfm(
+    images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress, video
+) -> dict:
     from recon.sfm.photo_stage import photos_to_workspace
 
     return photos_to_workspace(images, ws, cfg, options, progress, video)
@@ -57,9 +58,11 @@ def _video_config(images: Path, frames: int | None, fps: float | None, blur_rati
     if frames is not None and fps is not None:
         raise ValueError("give either --frames or --fps, not both")
     default = VideoConfig()
-    config = VideoConfig(frames=0 if fps is not None else default.frames if frames is None else frames,
-                         fps=0.0 if fps is None else fps,
-                         blur_ratio=default.blur_ratio if blur_ratio is None else blur_ratio)
+    config = VideoConfig(
+        frames=0 if fps is not None else default.frames if frames is None else frames,
+        fps=0.0 if fps is None else fps,
+        blur_ratio=default.blur_ratio if blur_ratio is None else blur_ratio,
+    )
     validate_video_config(config)
     return config
 
@@ -69,22 +72,36 @@ def _summary_line(report: dict, root: Path) -> str:
     video = report.get("video")
     if video:
         n = video["videos_given"]
-        line += (f"; {n} video{'s' if n > 1 else ''}: {video['frames_decoded']} frames decoded, "
-                 f"{video['frames_chosen']} extracted (sharpest per window), "
-                 f"{video['frames_kept']} kept ({video['frames_blurred']} too blurred)")
+        line += (
+            f"; {n} video{'s' if n > 1 else ''}: {video['frames_decoded']} frames decoded, "
+            f"{video['frames_chosen']} extracted (sharpest per window), "
+            f"{video['frames_kept']} kept ({video['frames_blurred']} too blurred)"
+        )
     return line
 
 
 @click.command()
 @click.argument("images", metavar="[PHOTOS|VIDEO]", required=False, type=click.Path(path_type=Path))
 @workspace_option
-@click.option("--from-transforms", "transforms", type=click.Path(path_type=Path),
-              help="Known poses: a transforms*.json (nerfstudio / instant-ngp / Blender) or a folder "
-                   "with transforms_{train,val,test}.json (its split is kept).")
-@click.option("--from-colmap", "colmap_dir", type=click.Path(path_type=Path),
-              help="Known poses: a COLMAP sparse model folder (text or binary).")
-@click.option("--images", "colmap_images", type=click.Path(path_type=Path),
-              help="With --from-colmap: the images folder (default: next to the model).")
+@click.option(
+    "--from-transforms",
+    "transforms",
+    type=click.Path(path_type=Path),
+    help="Known poses: a transforms*.json (nerfstudio / instant-ngp / Blender) or a folder "
+    "with transforms_{train,val,test}.json (its split is kept).",
+)
+@click.option(
+    "--from-colmap",
+    "colmap_dir",
+    type=click.Path(path_type=Path),
+    help="Known poses: a COLMAP sparse model folder (text or binary).",
+)
+@click.option(
+    "--images",
+    "colmap_images",
+    type=click.Path(path_type=Path),
+    help="With --from-colmap: the images folder (default: next to the model).",
+)
 @config_option(SceneConfig, "downscale", type=click.IntRange(1, 64))
 @config_option(SceneConfig, "background")
 @config_option(SceneConfig, "scene")
@@ -99,17 +116,43 @@ def _summary_line(report: dict, root: Path) -> str:
 @config_option(SfmConfig, "min_image_side", type=click.IntRange(1))
 @config_option(SfmConfig, "seed")
 @config_option(SfmConfig, "num_threads")
-@click.option("--frames", "frames", type=int, default=None,
-              help="Video: about this many frames in all, evenly over the video(s) [default: 100].")
-@click.option("--fps", "fps", type=float, default=None,
-              help="Video: instead of --frames, this many frames per second of video.")
-@click.option("--blur-ratio", "blur_ratio", type=float, default=None,
-              help="Video: drop a window's sharpest frame if its sharpness is under this x the "
-                   "median over all windows' sharpest [default: 0.35; 0 keeps all].")
+@click.option(
+    "--frames",
+    "frames",
+    type=int,
+    default=None,
+    help="Video: about this many frames in all, evenly over the video(s) [default: 100].",
+)
+@click.option(
+    "--fps",
+    "fps",
+    type=float,
+    default=None,
+    help="Video: instead of --frames, this many frames per second of video.",
+)
+@click.option(
+    "--blur-ratio",
+    "blur_ratio",
+    type=float,
+    default=None,
+    help="Video: drop a window's sharpest frame if its sharpness is under this x the "
+    "median over all windows' sharpest [default: 0.35; 0 keeps all].",
+)
 @json_option
 @click.pass_context
-def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, frames, fps, blur_ratio,
-        as_json, **options):
+def sfm(
+    ctx,
+    images,
+    workspace,
+    transforms,
+    colmap_dir,
+    colmap_images,
+    frames,
+    fps,
+    blur_ratio,
+    as_json,
+    **options,
+):
     """Camera poses and sparse points -> WS/sfm/ (COLMAP model, cameras.json, points.ply, report).
 
     \b
@@ -129,8 +172,10 @@ def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, frames, f
             if not images.exists():
                 raise SourceError(f"photo folder or video {images} does not exist")
             video = _video_config(images, frames, fps, blur_ratio)
-            options = {**{k: v for k, v in options.items() if k in field_help(SfmConfig)},
-                       "verbose": ctx.obj["verbose"]}
+            options = {
+                **{k: v for k, v in options.items() if k in field_help(SfmConfig)},
+                "verbose": ctx.obj["verbose"],
+            }
             with new_or_existing_workspace(root) as ws:
                 report = _photo_sfm(images, ws, cfg, options, progress, video)
         else:

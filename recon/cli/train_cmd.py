@@ -19,7 +19,9 @@ from recon.workspace import Workspace
 def _list_options(method: str) -> str:
     spec = method_spec(method)
     helps = field_help(spec.config_cls)
-    lines = [f"options of --method {method} (set with --set KEY=VALUE); presets: {', '.join(spec.presets)}"]
+    lines = [
+        f"options of --method {method} (set with --set KEY=VALUE); presets: {', '.join(spec.presets)}"
+    ]
     for f in dataclasses.fields(spec.config_cls):
         lines.append(f"  {f.name} = {f.default!r}  {helps.get(f.name, '')}")
     return "\n".join(lines)
@@ -27,8 +29,13 @@ def _list_options(method: str) -> str:
 
 @click.command("train")
 @workspace_option
-@click.option("--method", "-m", required=True, type=click.Choice(METHOD_NAMES),
-              help="Scene representation to train.")
+@click.option(
+    "--method",
+    "-m",
+    required=True,
+    type=click.Choice(METHOD_NAMES),
+    help="Scene representation to train.",
+)
 @click.option("--run", "run", default=None, help="Run name (default: the method name).")
 @config_option(TrainConfig, "preset")
 @config_option(TrainConfig, "steps")
@@ -45,17 +52,33 @@ def _list_options(method: str) -> str:
 @config_option(TrainConfig, "seed")
 @config_option(TrainConfig, "threads")
 @config_option(TrainConfig, "device")
-@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-              help="Override a method option (repeatable); see --list-options.")
-@click.option("--init-from-ply", "init_ply", default=None,
-              type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="3dgs: start from this INRIA splat PLY (world units, as `recon export` writes).")
-@click.option("--list-options", is_flag=True, help="List the method's options with their help and exit.")
-@click.option("--resume", is_flag=True, help="Continue an interrupted run from its last checkpoint.")
-@click.option("--force", is_flag=True, help="Overwrite an existing run / train on a stale sfm stage.")
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Override a method option (repeatable); see --list-options.",
+)
+@click.option(
+    "--init-from-ply",
+    "init_ply",
+    default=None,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="3dgs: start from this INRIA splat PLY (world units, as `recon export` writes).",
+)
+@click.option(
+    "--list-options", is_flag=True, help="List the method's options with their help and exit."
+)
+@click.option(
+    "--resume", is_flag=True, help="Continue an interrupted run from its last checkpoint."
+)
+@click.option(
+    "--force", is_flag=True, help="Overwrite an existing run / train on a stale sfm stage."
+)
 @json_option
-def command(workspace, method, run, overrides, init_ply, list_options, resume, force, as_json,
-            **options):
+def command(
+    workspace, method, run, overrides, init_ply, list_options, resume, force, as_json, **options
+):
     """Train a scene representation -> WS/runs/RUN/ (run.json, log.jsonl, checkpoints/, model.pt).
 
     Without --steps, --time-budget or --patience the method's own step count applies.
@@ -69,7 +92,9 @@ def command(workspace, method, run, overrides, init_ply, list_options, resume, f
         raise click.UsageError("give --max-side or --downscale, not both")
     if init_ply is not None:
         if not spec.starts_from_splats:
-            raise click.UsageError(f"--init-from-ply is for methods that start from splats (3dgs), not {method}")
+            raise click.UsageError(
+                f"--init-from-ply is for methods that start from splats (3dgs), not {method}"
+            )
         overrides = (*overrides, f"init_ply={init_ply.resolve()}")
     ws = Workspace.open(workspace)
     if not (options["steps"] or options["time_budget_s"] or options["patience"]):
@@ -80,14 +105,17 @@ def command(workspace, method, run, overrides, init_ply, list_options, resume, f
     cfg = from_options(TrainConfig, options, method=method)
     run = run or method
     with Progress(enabled=not as_json) as progress:
-        summary = train(ws, run, cfg, list(overrides), resume, force, log_fn=progress.log,
-                        progress=progress)
+        summary = train(
+            ws, run, cfg, list(overrides), resume, force, log_fn=progress.log, progress=progress
+        )
     if as_json:
         emit_json(summary)
     else:
         psnr = summary["best_test_psnr"]
         res = summary["resolution"]["working"]
-        click.echo(f"train: run '{run}' {summary['steps']} steps at {res['width']}x{res['height']} "
-                   f"in {summary['elapsed_s']:.1f} s ({summary['train_wall_s']:.1f} s of steps; "
-                   f"stopped: {summary['stop_reason']}); held-out PSNR "
-                   f"{'n/a' if psnr is None else f'{psnr:.2f} dB'} -> {ws.run_dir(run)}")
+        click.echo(
+            f"train: run '{run}' {summary['steps']} steps at {res['width']}x{res['height']} "
+            f"in {summary['elapsed_s']:.1f} s ({summary['train_wall_s']:.1f} s of steps; "
+            f"stopped: {summary['stop_reason']}); held-out PSNR "
+            f"{'n/a' if psnr is None else f'{psnr:.2f} dB'} -> {ws.run_dir(run)}"
+        )

@@ -46,8 +46,9 @@ def init_state(n: int, device=None) -> dict[str, Tensor]:
 
 
 @torch.no_grad()
-def accumulate(state: dict[str, Tensor], grad_means2d: Tensor, radii: Tensor, width: int,
-               height: int) -> None:
+def accumulate(
+    state: dict[str, Tensor], grad_means2d: Tensor, radii: Tensor, width: int, height: int
+) -> None:
     """In place: for visible Gaussians (radius > 0) add |dL/dmu'_px * (W/2, H/2)|, count one
     visible step and track max radius / max(W, H). grad_means2d (G, 2), radii (G,)."""
     visible = radii > 0
@@ -69,8 +70,9 @@ def _candidates(strategy: DensifyStrategy, state: dict[str, Tensor], n: int) -> 
     return chosen
 
 
-def _split_children(params: nn.ParameterDict, split: Tensor, shrink: float,
-                    generator: torch.Generator | None) -> dict[str, Tensor]:
+def _split_children(
+    params: nn.ParameterDict, split: Tensor, shrink: float, generator: torch.Generator | None
+) -> dict[str, Tensor]:
     """Two children per split Gaussian: mu + R (s * eps), eps ~ N(0, I); log-scales - log 1.6."""
     rows = {name: p.detach()[split].repeat(2, *([1] * (p.dim() - 1))) for name, p in params.items()}
     scales = torch.exp(rows["log_scales"])
@@ -82,10 +84,15 @@ def _split_children(params: nn.ParameterDict, split: Tensor, shrink: float,
 
 
 @torch.no_grad()
-def densify_and_prune(strategy: DensifyStrategy, params: nn.ParameterDict,
-                      optimizer: torch.optim.Adam, state: dict[str, Tensor], step: int,
-                      scene_extent: float, generator: torch.Generator | None = None,
-                      ) -> dict[str, int]:
+def densify_and_prune(
+    strategy: DensifyStrategy,
+    params: nn.ParameterDict,
+    optimizer: torch.optim.Adam,
+    state: dict[str, Tensor],
+    step: int,
+    scene_extent: float,
+    generator: torch.Generator | None = None,
+) -> dict[str, int]:
     """Clone, split and prune in place (parameters and Adam moments). Returns the counts."""
     n = params["means"].shape[0]
     chosen = _candidates(strategy, state, n)
@@ -105,16 +112,24 @@ def densify_and_prune(strategy: DensifyStrategy, params: nn.ParameterDict,
     drop = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
     drop |= torch.sigmoid(params["opacity_logits"]) < strategy.prune_opacity
     if step + 1 > strategy.reset_interval:
-        too_big = torch.exp(params["log_scales"]).amax(-1) > strategy.prune_world_fraction * scene_extent
+        too_big = (
+            torch.exp(params["log_scales"]).amax(-1) > strategy.prune_world_fraction * scene_extent
+        )
         on_screen = torch.cat([state["radii"], state["radii"].new_zeros(n_new)])
         drop |= too_big | (on_screen > strategy.prune_screen_fraction)
     keep_rows(params, optimizer, ~drop)
     return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(drop.sum())}
 
 
-def post_step(strategy: DensifyStrategy, params: nn.ParameterDict, optimizer: torch.optim.Adam,
-              state: dict[str, Tensor], step: int, scene_extent: float,
-              generator: torch.Generator | None = None) -> dict[str, Tensor]:
+def post_step(
+    strategy: DensifyStrategy,
+    params: nn.ParameterDict,
+    optimizer: torch.optim.Adam,
+    state: dict[str, Tensor],
+    step: int,
+    scene_extent: float,
+    generator: torch.Generator | None = None,
+) -> dict[str, Tensor]:
     """The schedule, run after the optimizer step of 0-based `step` (the reference counts from
     1). Returns the state to use next: fresh accumulators whenever the count changed."""
     it = step + 1
@@ -125,6 +140,7 @@ def post_step(strategy: DensifyStrategy, params: nn.ParameterDict, optimizer: to
         state = init_state(params["means"].shape[0], params["means"].device)
     if it % strategy.reset_interval == 0:
         logit = torch.logit(torch.tensor(RESET_OPACITY)).item()
-        reset_rows(params, optimizer, "opacity_logits",
-                   params["opacity_logits"].detach().clamp_max(logit))
+        reset_rows(
+            params, optimizer, "opacity_logits", params["opacity_logits"].detach().clamp_max(logit)
+        )
     return state

@@ -38,9 +38,16 @@ def composite_alphas(alpha: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
     return weights @ features, torch.exp(torch.log1p(-alpha).sum(-1))
 
 
-def rasterize_features_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                           radii: Tensor, depths: Tensor, width: int, height: int,
-                           ) -> tuple[Tensor, Tensor]:
+def rasterize_features_reference(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
     """Dense twin of `rasterize.rasterize_features`: same arguments, same outputs
     image (H, W, D), transmittance (H, W)."""
     order = torch.argsort(depths.detach(), stable=True)
@@ -48,8 +55,12 @@ def rasterize_features_reference(means2d: Tensor, conics: Tensor, opacities: Ten
     bounds = tile_bounds(means2d, radii, width, height)[order]
     pixels = pixel_centers(width, height, device=means2d.device, dtype=means2d.dtype).reshape(-1, 2)
     tile_xy = torch.div(pixels.detach(), TILE, rounding_mode="floor").long()
-    listed = ((tile_xy[:, None, 0] >= bounds[:, 0]) & (tile_xy[:, None, 0] < bounds[:, 2])
-              & (tile_xy[:, None, 1] >= bounds[:, 1]) & (tile_xy[:, None, 1] < bounds[:, 3]))
+    listed = (
+        (tile_xy[:, None, 0] >= bounds[:, 0])
+        & (tile_xy[:, None, 0] < bounds[:, 2])
+        & (tile_xy[:, None, 1] >= bounds[:, 1])
+        & (tile_xy[:, None, 1] < bounds[:, 3])
+    )
     alpha = splat_alphas(means2d[order], conics[order], opacities[order], pixels)
     alpha = torch.where(listed, alpha, torch.zeros_like(alpha))
     image, T = composite_alphas(alpha, features[order])

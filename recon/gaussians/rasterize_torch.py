@@ -37,15 +37,23 @@ def _alphas(means2d, conics, opacities, gid, px, py, on_image) -> Tensor:
     return torch.where(keep, alpha, torch.zeros_like(alpha))
 
 
-def rasterize_features_torch(means2d: Tensor, conics: Tensor, opacities: Tensor,
-                              features: Tensor, radii: Tensor, depths: Tensor, width: int,
-                              height: int) -> tuple[Tensor, Tensor]:
+def rasterize_features_torch(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
     """Same arguments and outputs as `rasterize.rasterize_features`: image (H, W, D),
     transmittance (H, W)."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles, D = tiles_x * tiles_y, features.shape[1]
-    starts, gid = bin_gaussians_sorted(tile_bounds(means2d, radii, width, height), depths,
-                                       width, height)
+    starts, gid = bin_gaussians_sorted(
+        tile_bounds(means2d, radii, width, height), depths, width, height
+    )
     tile_ids = torch.repeat_interleave(torch.arange(n_tiles, device=gid.device), starts.diff())
     px, py, on_image = _pixel_grid(tile_ids, width, height, means2d.dtype)
     alpha = _alphas(means2d, conics, opacities, gid, px, py, on_image)
@@ -56,8 +64,9 @@ def rasterize_features_torch(means2d: Tensor, conics: Tensor, opacities: Tensor,
     image = features.new_zeros(n_tiles, TILE * TILE, D).index_add(0, tile_ids, weighted)
     log_final = log1m.new_zeros(n_tiles, TILE * TILE).index_add(0, tile_ids, log1m)
     T_final = torch.exp(log_final).to(alpha.dtype)
-    return _untile(image, tiles_x, tiles_y, width, height), _untile(T_final[..., None], tiles_x,
-                                                                   tiles_y, width, height)[..., 0]
+    return _untile(image, tiles_x, tiles_y, width, height), _untile(
+        T_final[..., None], tiles_x, tiles_y, width, height
+    )[..., 0]
 
 
 def _untile(x: Tensor, tiles_x: int, tiles_y: int, width: int, height: int) -> Tensor:

@@ -36,7 +36,9 @@ class SceneInfo:
     far: float
     points: Tensor | None = None
     point_colors: Tensor | None = None
-    scene_from_world: object | None = None  # cameras.similarity.Similarity, x_scene = s R x_world + t
+    scene_from_world: object | None = (
+        None  # cameras.similarity.Similarity, x_scene = s R x_world + t
+    )
 
 
 @dataclass
@@ -69,8 +71,9 @@ class TrainData:
             _, H, W, _ = self.images.shape
             w, h = max(1, W // factor), max(1, H // factor)
             small = np.stack([resize_area(im, w, h) for im in self.images.cpu().numpy()])
-            self._levels[factor] = TrainData(torch.from_numpy(small).to(self.images.device),
-                                             self.cameras.resized(w, h))
+            self._levels[factor] = TrainData(
+                torch.from_numpy(small).to(self.images.device), self.cameras.resized(w, h)
+            )
         return self._levels[factor]
 
     def rays(self) -> dict[str, Tensor]:
@@ -80,14 +83,17 @@ class TrainData:
             C, H, W, _ = self.images.shape
             uv = pixel_centers(W, H, device=self.images.device)
             o, d, z = rays_from_pixels(
-                uv[None], self.cameras.K[:, None, None].float(),
+                uv[None],
+                self.cameras.K[:, None, None].float(),
                 self.cameras.world_from_cam[:, None, None].float(),
             )
             cam = torch.arange(C, device=self.images.device)[:, None, None].expand(C, H, W)
             self._rays = {
-                "origins": o.reshape(-1, 3).contiguous(), "directions": d.reshape(-1, 3).contiguous(),
+                "origins": o.reshape(-1, 3).contiguous(),
+                "directions": d.reshape(-1, 3).contiguous(),
                 "z_per_t": z.expand(C, H, W).reshape(-1).contiguous(),
-                "rgb": self.images.reshape(-1, 3), "camera": cam.reshape(-1),
+                "rgb": self.images.reshape(-1, 3),
+                "camera": cam.reshape(-1),
             }
         return self._rays
 

@@ -34,7 +34,7 @@ def render_image(render_rays: RenderRaysFn, camera: Cameras, chunk: int) -> dict
     origins, directions, z_per_t = camera_rays(camera, 0)
     H, W = z_per_t.shape
     o, d = origins.reshape(-1, 3).float(), directions.reshape(-1, 3).float()
-    parts = [render_rays(o[i:i + chunk], d[i:i + chunk]) for i in range(0, o.shape[0], chunk)]
+    parts = [render_rays(o[i : i + chunk], d[i : i + chunk]) for i in range(0, o.shape[0], chunk)]
     rgb, t, acc = (torch.cat(p) for p in zip(*parts))
     depth = surface_depth(t, acc) * z_per_t.reshape(-1).to(t)
     return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
@@ -90,7 +90,10 @@ def mlp_dtype(device: torch.device, precision: str) -> torch.dtype:
     if device.type == "cuda":
         native = torch.cuda.is_bf16_supported()
     else:
-        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # private torch API: absent = no
+        probes = (
+            "_is_avx512_bf16_supported",
+            "_is_amx_tile_supported",
+        )  # private torch API: absent = no
         native = any(getattr(torch.cpu, name, lambda: False)() for name in probes)
     return torch.bfloat16 if native else torch.float32
 
@@ -124,5 +127,3 @@ class _TruncExp(torch.autograd.Function):
 def trunc_exp(x: Tensor) -> Tensor:
     """sigma = exp(x) with the gradient clamped at x = 15 (see `_TruncExp`)."""
     return _TruncExp.apply(x)
-
-

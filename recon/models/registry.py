@@ -64,8 +64,15 @@ def save_model(path: Path, method: str, method_cfg: dict, model: Model) -> Path:
     """The trained model as one file: its method, its config and its state."""
     from recon.io.atomic import save_torch
 
-    save_torch({"schema_version": MODEL_SCHEMA_VERSION, "method": method, "config": method_cfg,
-                "state_dict": model.state_dict()}, path)
+    save_torch(
+        {
+            "schema_version": MODEL_SCHEMA_VERSION,
+            "method": method,
+            "config": method_cfg,
+            "state_dict": model.state_dict(),
+        },
+        path,
+    )
     return path
 
 
@@ -75,8 +82,10 @@ def load_model(path: Path, scene: SceneInfo, device: str | torch.device = "cpu")
 
     saved = torch.load(path, map_location="cpu", weights_only=True)
     if saved.get("schema_version", 1) > MODEL_SCHEMA_VERSION:
-        raise ValueError(f"{path} was written by a newer recon (model schema_version "
-                         f"{saved['schema_version']}): upgrade recon")
+        raise ValueError(
+            f"{path} was written by a newer recon (model schema_version "
+            f"{saved['schema_version']}): upgrade recon"
+        )
     spec = method_spec(saved["method"])
     model = spec.build(spec.config_cls(**config_from_json(spec.config_cls, saved["config"])), scene)
     model.load_state_dict(saved["state_dict"])

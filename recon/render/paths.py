@@ -17,8 +17,12 @@ def orbit_path(centers: Tensor, target: Tensor, frames: int) -> Tensor:
     radius = rel[:, :2].norm(dim=-1).mean()
     height = rel[:, 2].mean()
     angles = torch.linspace(0, 2 * math.pi, frames + 1, dtype=centers.dtype)[:-1]
-    eye = torch.stack([radius * torch.cos(angles), radius * torch.sin(angles),
-                       height.expand(frames)], dim=-1) + target
+    eye = (
+        torch.stack(
+            [radius * torch.cos(angles), radius * torch.sin(angles), height.expand(frames)], dim=-1
+        )
+        + target
+    )
     return look_at(eye, target, torch.tensor([0.0, 0.0, 1.0], dtype=centers.dtype))
 
 
@@ -30,8 +34,14 @@ def spiral_path(world_from_cam: Tensor, target: Tensor, frames: int, rots: float
     right, down = R[:, 0], R[:, 1]
     spread = (c - mean_c).abs().quantile(0.9, dim=0).norm().clamp_min(1e-3)
     t = torch.linspace(0, 2 * math.pi * rots, frames + 1, dtype=c.dtype)[:-1]
-    eye = mean_c + spread * (torch.cos(t)[:, None] * right + torch.sin(t)[:, None] * down) \
-        + 0.5 * spread * torch.sin(t / rots)[:, None] * torch.nn.functional.normalize(target - mean_c, dim=0)
+    eye = (
+        mean_c
+        + spread * (torch.cos(t)[:, None] * right + torch.sin(t)[:, None] * down)
+        + 0.5
+        * spread
+        * torch.sin(t / rots)[:, None]
+        * torch.nn.functional.normalize(target - mean_c, dim=0)
+    )
     return look_at(eye, target, -down)
 
 
@@ -42,9 +52,13 @@ def _slerp_rot(Ra: Tensor, Rb: Tensor, s: float) -> Tensor:
     angle = torch.arccos(cos)
     if angle < 1e-8:
         return Ra
-    axis = torch.stack([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / (2 * torch.sin(angle))
+    axis = torch.stack([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / (
+        2 * torch.sin(angle)
+    )
     a = angle * s
-    Kx = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=Ra.dtype)
+    Kx = torch.tensor(
+        [[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=Ra.dtype
+    )
     return Ra @ (torch.eye(3, dtype=Ra.dtype) + torch.sin(a) * Kx + (1 - torch.cos(a)) * Kx @ Kx)
 
 

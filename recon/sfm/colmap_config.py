@@ -21,11 +21,19 @@ class SfmConfig:
 
     max_image_size: int = opt(1600, "SIFT runs on photos downscaled to this longer side (px)")
     max_num_features: int = opt(4096, "SIFT keypoints kept per image")
-    matcher: str = opt("auto", "photos: feature matcher (auto: exhaustive up to 100 photos, sequential "
-                       "for video frames)", choices=("auto", "exhaustive", "sequential"))
-    mapper: str = opt("incremental", "photos: incremental (COLMAP) or global (GLOMAP) mapper",
-                      choices=("incremental", "global"))
-    camera_model: str = opt("SIMPLE_RADIAL", "COLMAP camera model: SIMPLE_RADIAL, OPENCV, PINHOLE...")
+    matcher: str = opt(
+        "auto",
+        "photos: feature matcher (auto: exhaustive up to 100 photos, sequential for video frames)",
+        choices=("auto", "exhaustive", "sequential"),
+    )
+    mapper: str = opt(
+        "incremental",
+        "photos: incremental (COLMAP) or global (GLOMAP) mapper",
+        choices=("incremental", "global"),
+    )
+    camera_model: str = opt(
+        "SIMPLE_RADIAL", "COLMAP camera model: SIMPLE_RADIAL, OPENCV, PINHOLE..."
+    )
     single_camera: bool = opt(True, "one camera shared by all photos of one size (one device)")
     try_harder: bool = opt(True, "retry with more features / other matcher if photos stay out")
     min_image_side: int = opt(64, "photos with a shorter side below this (px) are skipped")

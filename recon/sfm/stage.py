@@ -14,9 +14,16 @@ from recon.sfm.sources import PosedImages
 from recon.workspace import Workspace, atomic_dir
 
 
-def write_sfm_stage(ws: Workspace, posed: PosedImages, cfg: SceneConfig, inputs: dict[str, Path],
-                    config_record: dict, report: dict | None = None, progress=None,
-                    copy_into_sfm: dict[str, Path] | None = None) -> dict:
+def write_sfm_stage(
+    ws: Workspace,
+    posed: PosedImages,
+    cfg: SceneConfig,
+    inputs: dict[str, Path],
+    config_record: dict,
+    report: dict | None = None,
+    progress=None,
+    copy_into_sfm: dict[str, Path] | None = None,
+) -> dict:
     """Write images/ and sfm/ atomically from posed images and record the `sfm` stage.
     `copy_into_sfm` maps names under sfm/ to files or folders to keep there (COLMAP's database)."""
     started = time.time()
@@ -31,8 +38,13 @@ def write_sfm_stage(ws: Workspace, posed: PosedImages, cfg: SceneConfig, inputs:
                 shutil.copytree(src, dst) if Path(src).is_dir() else shutil.copy2(src, dst)
         ended = time.time()
         ws.record_stage(
-            "sfm", config={**config_record, **asdict(cfg)}, inputs=inputs,
+            "sfm",
+            config={**config_record, **asdict(cfg)},
+            inputs=inputs,
             outputs={"cameras": ws.cameras_json, "images": ws.images_dir},
-            upstream=[], started=started, ended=ended, extra={"summary": summary},
+            upstream=[],
+            started=started,
+            ended=ended,
+            extra={"summary": summary},
         )
     return full_report

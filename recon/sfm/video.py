@@ -50,13 +50,17 @@ class VideoConfig:
 
     frames: int = opt(100, "about this many frames in all, evenly over the video(s) (0 with --fps)")
     fps: float = opt(0.0, "instead of --frames: this many frames per second of video (0: unused)")
-    blur_ratio: float = opt(0.35, "drop a chosen frame whose sharpness is under this x the chosen frames' median")
+    blur_ratio: float = opt(
+        0.35, "drop a chosen frame whose sharpness is under this x the chosen frames' median"
+    )
 
 
 def validate_video_config(config: VideoConfig) -> None:
     """One-line ValueError for a config that cannot choose frames."""
     if config.frames < 0 or config.fps < 0:
-        raise ValueError(f"--frames and --fps must be positive, got {config.frames} and {config.fps:g}")
+        raise ValueError(
+            f"--frames and --fps must be positive, got {config.frames} and {config.fps:g}"
+        )
     if (config.frames > 0) == (config.fps > 0):
         raise ValueError("give exactly one of --frames N (N > 0) or --fps F (F > 0)")
     if not 0.0 <= config.blur_ratio < 1.0:
@@ -138,7 +142,9 @@ def windows_for(num_frames: int, video_fps: float, frames: int, fps: float) -> i
     per 1/fps seconds of video, round(N fps / video_fps); always within [1, N]."""
     if fps > 0:
         if video_fps <= 0:
-            raise ValueError("the video does not state its frame rate: use --frames instead of --fps")
+            raise ValueError(
+                "the video does not state its frame rate: use --frames instead of --fps"
+            )
         wanted = round(num_frames * fps / video_fps)
     else:
         wanted = frames

@@ -31,12 +31,16 @@ class SceneConfig:
     """Geometry, texture and light of the sample scene (lengths in metres, world z up)."""
 
     seed: int = opt(0, "seeds the texture's random colours and lattice orientations")
-    plate_center: tuple[float, float, float] = opt((0.3, -0.2, 0.3), "centre of the plate's top face")
+    plate_center: tuple[float, float, float] = opt(
+        (0.3, -0.2, 0.3), "centre of the plate's top face"
+    )
     # the 4 cm thick disk the objects stand on; it fills each view up to the image borders,
     # where features pin down a view's focal length (a smaller plate doubles SfM pose errors)
     plate_radius: float = 1.0
     coarse_cell: float = opt(0.09, "edge of the random-colour cells (~12 px at 1.9 m, f=250 px)")
-    fine_cell: float = opt(0.035, "edge of the random-brightness cells that add corners inside them")
+    fine_cell: float = opt(
+        0.035, "edge of the random-brightness cells that add corners inside them"
+    )
     small_dot_cell: float = opt(0.07, "one dot of contrasting colour per cell: SIFT-sized blobs")
     large_dot_cell: float = opt(0.16, "a second, coarser layer of dots for the larger SIFT scales")
     light_direction: tuple[float, float, float] = opt((0.4, -0.3, 0.85), "towards the light")

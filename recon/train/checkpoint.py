@@ -24,8 +24,9 @@ def save_checkpoint(directory: Path, step: int, payload: dict, keep: int) -> Pat
     path = directory / f"step_{step:08d}.pt"
     save_torch({"schema_version": CHECKPOINT_SCHEMA_VERSION, **payload}, path)
     index = _read_index(directory)
-    index = [e for e in index if e["file"] != path.name] + [{"file": path.name, "step": step,
-                                                              "hash": hash_file(path)}]
+    index = [e for e in index if e["file"] != path.name] + [
+        {"file": path.name, "step": step, "hash": hash_file(path)}
+    ]
     for old in index[:-keep] if keep > 0 else []:
         (directory / old["file"]).unlink(missing_ok=True)
     index = index[-keep:] if keep > 0 else index
@@ -45,7 +46,9 @@ def load_latest_checkpoint(directory: Path, log=print) -> dict | None:
     for entry in reversed(_read_index(directory)):
         path = directory / entry["file"]
         if not path.exists() or hash_file(path) != entry["hash"]:
-            log(f"checkpoint {path.name} is missing or corrupt (checksum mismatch); trying an older one")
+            log(
+                f"checkpoint {path.name} is missing or corrupt (checksum mismatch); trying an older one"
+            )
             continue
         try:
             payload = torch.load(path, map_location="cpu", weights_only=True)
@@ -53,7 +56,9 @@ def load_latest_checkpoint(directory: Path, log=print) -> dict | None:
             log(f"checkpoint {path.name} cannot be read ({e}); trying an older one")
             continue
         if payload.get("schema_version", 1) > CHECKPOINT_SCHEMA_VERSION:
-            raise ValueError(f"checkpoint {path} was written by a newer recon "
-                             f"(schema_version {payload['schema_version']}): upgrade recon")
+            raise ValueError(
+                f"checkpoint {path} was written by a newer recon "
+                f"(schema_version {payload['schema_version']}): upgrade recon"
+            )
         return payload
     return None

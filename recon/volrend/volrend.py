@@ -60,8 +60,11 @@ def render_transmittance(tau: Tensor, ray_indices: Tensor | None = None) -> Tens
     return torch.exp(-exclusive_cumsum(tau.clamp(max=_TAU_CAP), ray_indices))
 
 
-def alpha_compositing(alpha: Tensor, ray_indices: Tensor | None = None, t_min: float = 0.0,
-                      ) -> tuple[Tensor, Tensor]:
+def alpha_compositing(
+    alpha: Tensor,
+    ray_indices: Tensor | None = None,
+    t_min: float = 0.0,
+) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of per-sample opacities (the same sum as `render_weights` with
     alpha given instead of sigma delta; Kerbl et al. 2023, eq. 3): w_i = T_i alpha_i with the
     exclusive transmittance T_i = prod_{j<i} (1 - alpha_j), taken in log space as

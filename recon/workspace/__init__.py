@@ -4,6 +4,11 @@ from recon.io.atomic import atomic_dir, atomic_path, atomic_write_json, atomic_w
 from recon.workspace.workspace import SCHEMA_VERSION, Workspace, WorkspaceError
 
 __all__ = [
-    "SCHEMA_VERSION", "Workspace", "WorkspaceError",
-    "atomic_dir", "atomic_path", "atomic_write_json", "atomic_write_text",
+    "SCHEMA_VERSION",
+    "Workspace",
+    "WorkspaceError",
+    "atomic_dir",
+    "atomic_path",
+    "atomic_write_json",
+    "atomic_write_text",
 ]

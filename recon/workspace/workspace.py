@@ -48,8 +48,12 @@ def software_versions() -> dict:
     """Versions that can change a result, recorded with every stage."""
     import torch
 
-    out = {"recon": recon.__version__, "python": platform.python_version(),
-           "torch": torch.__version__, "threads": torch.get_num_threads()}
+    out = {
+        "recon": recon.__version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
     if "numba" in sys.modules:
         out["numba"] = sys.modules["numba"].__version__
         out["numba_threads"] = sys.modules["numba"].get_num_threads()
@@ -80,15 +84,18 @@ class Workspace:
         if root.exists() and any(p for p in root.iterdir() if not p.name.startswith(".")):
             raise WorkspaceError(f"{root} is a non-empty directory without workspace.json")
         root.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(ws.json_path, {"schema_version": SCHEMA_VERSION, "created": now_iso(),
-                                         "stages": {}})
+        atomic_write_json(
+            ws.json_path, {"schema_version": SCHEMA_VERSION, "created": now_iso(), "stages": {}}
+        )
         return ws
 
     @classmethod
     def open(cls, root: Path) -> Workspace:
         ws = cls(root)
         if not ws.json_path.exists():
-            raise WorkspaceError(f"{root} is not a recon workspace (no workspace.json): run `recon sfm` first")
+            raise WorkspaceError(
+                f"{root} is not a recon workspace (no workspace.json): run `recon sfm` first"
+            )
         ws.load()
         return ws
 
@@ -105,7 +112,9 @@ class Workspace:
         try:
             doc = json.loads(self.json_path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise WorkspaceError(f"{self.json_path} is corrupt ({e.__class__.__name__}: {e})") from e
+            raise WorkspaceError(
+                f"{self.json_path} is corrupt ({e.__class__.__name__}: {e})"
+            ) from e
         version = doc.get("schema_version") if isinstance(doc, dict) else None
         if not isinstance(version, int):
             raise WorkspaceError(f"{self.json_path} has no integer schema_version")
@@ -224,8 +233,11 @@ class Workspace:
     def runs(self) -> list[str]:
         if not self.runs_dir.exists():
             return []
-        return sorted(p.name for p in self.runs_dir.iterdir()
-                      if (p / "run.json").exists() and not p.name.startswith("."))
+        return sorted(
+            p.name
+            for p in self.runs_dir.iterdir()
+            if (p / "run.json").exists() and not p.name.startswith(".")
+        )
 
     def rel(self, path: Path) -> str:
         """A path as recorded in workspace.json: relative to the root when inside it."""
@@ -279,8 +291,18 @@ class Workspace:
                 fcntl.flock(f, fcntl.LOCK_UN)
 
     # ---- stage records ---------------------------------------------------------------------
-    def record_stage(self, key: str, *, config, inputs: dict[str, Path], outputs: dict[str, Path],
-                     upstream: list[str], started: float, ended: float, extra: dict | None = None) -> dict:
+    def record_stage(
+        self,
+        key: str,
+        *,
+        config,
+        inputs: dict[str, Path],
+        outputs: dict[str, Path],
+        upstream: list[str],
+        started: float,
+        ended: float,
+        extra: dict | None = None,
+    ) -> dict:
         """Write the record of a finished stage: config, input/output content hashes, versions
         and timing. `inputs`/`outputs` map a label to a path (file or folder)."""
         if is_dataclass(config):
@@ -308,7 +330,9 @@ class Workspace:
         """Drop the records of stage `prefix` and its sub-stages; returns what was dropped."""
         with self._json_lock():
             doc = self.load()
-            dropped = {k: v for k, v in doc["stages"].items() if k == prefix or k.startswith(prefix + "/")}
+            dropped = {
+                k: v for k, v in doc["stages"].items() if k == prefix or k.startswith(prefix + "/")
+            }
             doc["stages"] = {k: v for k, v in doc["stages"].items() if k not in dropped}
             atomic_write_json(self.json_path, doc)
         return dropped
@@ -379,7 +403,9 @@ class Workspace:
         if st is None:
             raise WorkspaceError(f"stage '{key}' has not been run in {self.root}")
         if st["state"] != "done" and not force:
-            raise WorkspaceError(f"stage '{key}' is {st['state']} ({st['why']}): rerun it, or pass --force")
+            raise WorkspaceError(
+                f"stage '{key}' is {st['state']} ({st['why']}): rerun it, or pass --force"
+            )
 
 
 def timer() -> float:
