@@ -10,7 +10,7 @@ import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
 from recon.cli.progress import Progress
-from recon.options import config_option, field_help, from_options
+from recon.options import config_field, config_option, field_help, from_options
 from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.scene_writer import SceneConfig
 from recon.sfm.sources import SourceError, read_colmap, read_transforms
@@ -67,6 +67,17 @@ def _video_config(images: Path, frames: int | None, fps: float | None, blur_rati
     return config
 
 
+def _video_option(name: str, **kwargs):
+    """A `VideoConfig` flag whose default is None ("not given": a flag without a video in the
+    input is an error, and --frames and --fps exclude each other); help and the default it
+    stands for come from the config."""
+    from recon.sfm.video import VideoConfig
+
+    field = config_field(VideoConfig, name)
+    help_ = f"Video: {field.metadata['help']} [default: {field.default}]"
+    return click.option("--" + name.replace("_", "-"), name, default=None, help=help_, **kwargs)
+
+
 def _summary_line(report: dict, root: Path) -> str:
     line = f"sfm: {report['images']} images {report['splits']} -> {root / 'sfm'}"
     video = report.get("video")
@@ -116,28 +127,9 @@ def _summary_line(report: dict, root: Path) -> str:
 @config_option(SfmConfig, "min_image_side", type=click.IntRange(1))
 @config_option(SfmConfig, "seed")
 @config_option(SfmConfig, "num_threads")
-@click.option(
-    "--frames",
-    "frames",
-    type=int,
-    default=None,
-    help="Video: about this many frames in all, evenly over the video(s) [default: 100].",
-)
-@click.option(
-    "--fps",
-    "fps",
-    type=float,
-    default=None,
-    help="Video: instead of --frames, this many frames per second of video.",
-)
-@click.option(
-    "--blur-ratio",
-    "blur_ratio",
-    type=float,
-    default=None,
-    help="Video: drop a window's sharpest frame if its sharpness is under this x the "
-    "median over all windows' sharpest [default: 0.35; 0 keeps all].",
-)
+@_video_option("frames", type=int)
+@_video_option("fps", type=float)
+@_video_option("blur_ratio", type=float)
 @json_option
 @click.pass_context
 def sfm(
