@@ -454,7 +454,10 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
     return GaussianModel(config, scene)
 
 
-# one whole image a step at ~350k px/s (fox at 269 x 478: 1,624 steps in 600 s on 2 threads)
-RESOLUTION = ResolutionPolicy(pixels_per_s=350e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600)
+# one whole image a step at ~450k px/s: the quiet fox-real benchmark measured 530k px/s at
+# 215 x 382 (3,876 steps in 600 s), 500k at 179 x 319 and 300k at 107 x 191 (the fixed cost of a
+# step weighs more on small images); 350k, measured on a loaded machine, chose one level too
+# coarse at 2 and 10 minutes
+RESOLUTION = ResolutionPolicy(pixels_per_s=450e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600)
 SPEC = register(MethodSpec(name="3dgs", config_cls=GaussiansConfig, build=build, presets=PRESETS,
                            resolution=RESOLUTION))
