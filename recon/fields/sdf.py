@@ -1,0 +1,106 @@
+"""A signed distance field: a multiresolution hash grid (Müller et al. 2022) concatenated with
+the position, then a small MLP with Softplus activations whose first output is the signed
+distance and the rest a geometry feature (as NeuS2, Wang et al. 2023, Sec. 3).
+
+Geometric initialisation (Atzmon & Lipman 2020, "SAL", Sec. 4; as used by IDR and NeuS): the
+hidden layers start N(0, sqrt(2 / width)) with zero bias, the output layer's SDF row
+N(sqrt(pi / width), 1e-4) with bias -radius, and the weights reading the hash features start at
+zero, so at step 0 the field is close to the sphere |x| - radius about the box centre and every
+ray sees a surface to refine.
+
+The gradient of the SDF (the surface normal, and the eikonal term
+E (||grad f|| - 1)^2 of Gropp et al. 2020, "IGR", eq. 2) is taken by autograd through the torch
+path of the hash encoding, with create_graph while training so the eikonal loss itself has
+gradients (double backward).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import torch
+from torch import Tensor, nn
+
+from recon.fields.hashgrid import HashGrid
+
+SOFTPLUS_BETA = 100.0  # Softplus(100 x) / 100: ReLU-like with a smooth, non-zero second derivative
+
+
+class SDFField(nn.Module):
+    """(points in [-1, 1]^3, the scene box mapped to it) -> signed distance (N,) in those units
+    and a geometry feature (N, geo_features)."""
+
+    def __init__(
+        self,
+        n_levels: int = 16,
+        n_features: int = 2,
+        log2_table_size: int = 17,
+        n_min: int = 16,
+        n_max: int = 1024,
+        width: int = 64,
+        n_hidden: int = 2,
+        geo_features: int = 15,
+        radius: float = 0.5,
+    ):
+        super().__init__()
+        self.grid = HashGrid(n_levels, n_features, log2_table_size, n_min, n_max)
+        dims = [3 + self.grid.out_dim] + [width] * n_hidden + [1 + geo_features]
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in itertools.pairwise(dims))
+        self.activation = nn.Softplus(beta=SOFTPLUS_BETA)
+        self.geometric_init(radius)
+
+    @torch.no_grad()
+    def geometric_init(self, radius: float) -> None:
+        for i, layer in enumerate(self.layers):
+            out_dim, in_dim = layer.weight.shape
+            if i == len(self.layers) - 1:
+                layer.weight.normal_(0.0, 1e-4)
+                layer.weight[0].normal_(math.sqrt(math.pi) / math.sqrt(in_dim), 1e-4)
+                layer.bias.zero_()
+                layer.bias[0] = -radius
+            else:
+                layer.weight.normal_(0.0, math.sqrt(2.0) / math.sqrt(out_dim))
+                layer.bias.zero_()
+                if i == 0:
+                    layer.weight[:, 3:].zero_()  # the hash features start switched off
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x (N, 3) in [-1, 1]^3 -> (sdf (N,), geometry feature (N, geo_features))."""
+        h = torch.cat([x, self.grid((x + 1.0) / 2.0)], dim=-1)
+        for layer in self.layers[:-1]:
+            h = self.activation(layer(h))
+        out = self.layers[-1](h)
+        return out[:, 0], out[:, 1:]
+
+    def sdf(self, x: Tensor) -> Tensor:
+        return self(x)[0]
+
+
+def sdf_and_gradient(
+    field: nn.Module, x: Tensor, create_graph: bool
+) -> tuple[Tensor, Tensor, Tensor]:
+    """(sdf (N,), grad_x sdf (N, 3), geometry feature) at x (N, 3). create_graph: keep the
+    gradient differentiable (training, for the eikonal loss and normal-conditioned colour)."""
+    with torch.enable_grad():
+        x = x.detach().requires_grad_(True)
+        sdf, feature = field(x)
+        (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
+    return sdf, grad, feature
+
+
+def eikonal_loss(grad: Tensor) -> Tensor:
+    """E (||grad f|| - 1)^2 over the points (IGR, Gropp et al. 2020, eq. 2). grad (N, 3)."""
+    return (grad.norm(dim=-1) - 1.0).square().mean()
+
+
+def sphere_sdf(x: Tensor, radius: float) -> Tensor:
+    """|x| - radius: the exact signed distance to a sphere about the origin."""
+    return x.norm(dim=-1) - radius
+
+
+def box_sdf(x: Tensor, half_size: Tensor) -> Tensor:
+    """The exact signed distance to an axis-aligned box about the origin (Quilez's form):
+    |max(q, 0)| + min(max_k q_k, 0) with q = |x| - half_size."""
+    q = x.abs() - half_size
+    return q.clamp_min(0.0).norm(dim=-1) + q.max(dim=-1).values.clamp_max(0.0)
