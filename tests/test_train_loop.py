@@ -89,7 +89,7 @@ def test_time_budget_counts_evaluations():
 
     cams, imgs = _held(4)
     st, logs = LoopState(), []
-    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
+    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01, eval_max_fraction=0.0)
     model, data = SlowEval(0.05), _data()
     t0 = time.perf_counter()
     assert run_loop(model, data, cams, imgs, cfg, st, logs.append, lambda s: None) == "time_budget"

@@ -20,6 +20,7 @@ class TrainConfig:
     eval_every_s: float = 30.0  # held-out PSNR every this many seconds of training time
     eval_views: int = 4  # held-out views used for the periodic PSNR (evenly spaced test views)
     eval_max_side: int = 256  # the periodic PSNR renders at most this longer side (cheap, and inside the budget)
+    eval_max_fraction: float = 0.1  # a periodic PSNR waits while evaluations would take more than this fraction of the run's wall time (0 = no cap); a slow renderer then evaluates less often
     patience: int = 0  # stop when held-out PSNR has not improved for this many evals (0 = off)
     min_improvement_db: float = 0.05  # what counts as an improvement for `patience`
     checkpoint_every_s: float = 60.0  # checkpoint interval in training seconds (and at the end)
