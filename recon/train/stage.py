@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from recon.models.registry import config_from_json, import_methods, pick_device, save_model
-from recon.options import field_help
 from recon.train.checkpoint import has_checkpoint, load_latest_checkpoint, save_checkpoint
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
@@ -198,7 +197,6 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         "seed": cfg.seed,
         "config": asdict(method_cfg),
         "train": asdict(cfg),
-        "config_help": field_help(spec.config_cls),  # what each config value means
         "resolution": resolution,
         "versions": software_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
