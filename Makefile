@@ -16,11 +16,14 @@ $(BIN)/recon: pyproject.toml
 	@touch $@
 
 # two xdist workers on two cores: one thread each, or OpenMP oversubscription costs 10-40x
-test: install
+test: lint
 	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile tests
 
+# ruff (lint and format), and the layer order of pyproject.toml's import-linter contract
 lint: install
 	$(BIN)/ruff check recon tests pipelines
+	$(BIN)/ruff format --check recon tests pipelines
+	$(BIN)/lint-imports
 
 demo: install
 	$(MAKE) -C pipelines SCENE=sample METHOD=$(or $(METHOD),plenoxel) BUDGET=$(or $(BUDGET),90) all

@@ -1,4 +1,4 @@
-"""Mesh benchmark (issue #6): train short runs, extract meshes, score them against ground truth.
+"""Mesh benchmark: train short runs, extract meshes, score them against ground truth.
 
 Protocol, through the real `recon` CLI as a user would run it (2 CPU threads):
 - sample: `recon sfm --from-transforms sample_data`; train ngp and 3dgs for a time budget each;
@@ -34,25 +34,53 @@ SHARED = ROOT.parent / "shared" / "data"
 WALNUT = SHARED / "robovision_mvs_walnut"
 SCENES = {
     "sample": {"sfm": ["--from-transforms", str(ROOT / "sample_data")], "eval": []},
-    "walnut": {"sfm": ["--from-transforms", str(WALNUT / "transforms.json"), "--downscale", "4"],
-               "eval": ["--gt-points", str(WALNUT / "reference_reconstructions" / "2016_10_24__17_43_02"
-                                           / "reference.ply")]},
+    "walnut": {
+        "sfm": ["--from-transforms", str(WALNUT / "transforms.json"), "--downscale", "4"],
+        "eval": [
+            "--gt-points",
+            str(WALNUT / "reference_reconstructions" / "2016_10_24__17_43_02" / "reference.ply"),
+        ],
+    },
 }
-MESHERS = {"ngp": ["marching-cubes", "tsdf"], "3dgs": ["tsdf"], "plenoxel": ["marching-cubes", "tsdf"],
-           "nerf": ["marching-cubes"]}
-GEOMETRY_KEYS = ("accuracy", "completeness", "chamfer", "tau", "precision", "recall", "fscore",
-                 "normal_consistency", "gt_observed_fraction")
+MESHERS = {
+    "ngp": ["marching-cubes", "tsdf"],
+    "3dgs": ["tsdf"],
+    "plenoxel": ["marching-cubes", "tsdf"],
+    "nerf": ["marching-cubes"],
+}
+GEOMETRY_KEYS = (
+    "accuracy",
+    "completeness",
+    "chamfer",
+    "tau",
+    "precision",
+    "recall",
+    "fscore",
+    "normal_consistency",
+    "gt_observed_fraction",
+)
 
 
 def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: list[str]) -> dict:
     """`recon mesh` with one method, then `recon eval` of that mesh -> one result row."""
-    mesh = recon("mesh", "-w", str(ws), "--run", run, "--method", mesher, "--resolution", str(resolution))
+    mesh = recon(
+        "mesh", "-w", str(ws), "--run", run, "--method", mesher, "--resolution", str(resolution)
+    )
     ev = recon("eval", "-w", str(ws), "--run", run, "--no-lpips", *eval_args)[run]
     geo = ev["geometry"]
-    row = {"run": run, "mesher": mesher, "resolution": resolution, "mesh_seconds": mesh["seconds"],
-           "faces": mesh["faces"], "components": mesh["components"], "test_psnr": ev["mean"].get("psnr"),
-           "depth_abs_rel": ev["mean"].get("depth_abs_rel"), "geometry_status": geo["status"],
-           **{k: geo[k] for k in GEOMETRY_KEYS if k in geo}, "mesh_json": mesh}
+    row = {
+        "run": run,
+        "mesher": mesher,
+        "resolution": resolution,
+        "mesh_seconds": mesh["seconds"],
+        "faces": mesh["faces"],
+        "components": mesh["components"],
+        "test_psnr": ev["mean"].get("psnr"),
+        "depth_abs_rel": ev["mean"].get("depth_abs_rel"),
+        "geometry_status": geo["status"],
+        **{k: geo[k] for k in GEOMETRY_KEYS if k in geo},
+        "mesh_json": mesh,
+    }
     return row
 
 
@@ -64,27 +92,58 @@ def train_or_reuse(ws: Path, method: str, budget: float, reuse: bool) -> dict:
         return {"steps": doc["steps"], "stop_reason": doc["stop_reason"], "reused": True}
     print(f"bench_mesh: {ws.name} {method} train {budget:.0f} s ...", file=sys.stderr, flush=True)
     started = time.time()
-    train = recon("train", "-w", str(ws), "--method", method, "--run", method, "--time-budget", str(budget),
-                  "--threads", "2", "--eval-every", str(max(budget / 6, 15)), "--eval-views", "2", "--force")
-    return {"steps": train["steps"], "stop_reason": train["stop_reason"], "wall_s": round(time.time() - started, 1)}
+    train = recon(
+        "train",
+        "-w",
+        str(ws),
+        "--method",
+        method,
+        "--run",
+        method,
+        "--time-budget",
+        str(budget),
+        "--threads",
+        "2",
+        "--eval-every",
+        str(max(budget / 6, 15)),
+        "--eval-views",
+        "2",
+        "--force",
+    )
+    return {
+        "steps": train["steps"],
+        "stop_reason": train["stop_reason"],
+        "wall_s": round(time.time() - started, 1),
+    }
 
 
-def bench_scene(scene: str, methods: list[str], budget: float, resolution: int, work: Path,
-                reuse: bool = False) -> dict:
+def bench_scene(
+    scene: str, methods: list[str], budget: float, resolution: int, work: Path, reuse: bool = False
+) -> dict:
     ws = work / scene
     if not (ws / "sfm" / "cameras.json").exists():
         recon("sfm", *SCENES[scene]["sfm"], "-w", str(ws))
     cams = json.loads((ws / "sfm" / "cameras.json").read_text())
-    out = {"scene": scene, "workspace": str(ws), "aabb_scene": cams["aabb"],
-           "scene_scale": cams["scene_from_world"]["scale"], "rows": [], "training": {}}
+    out = {
+        "scene": scene,
+        "workspace": str(ws),
+        "aabb_scene": cams["aabb"],
+        "scene_scale": cams["scene_from_world"]["scale"],
+        "rows": [],
+        "training": {},
+    }
     for method in methods:
         out["training"][method] = train_or_reuse(ws, method, budget, reuse)
         for mesher in MESHERS[method]:
             print(f"bench_mesh: {scene} {method} {mesher} ...", file=sys.stderr, flush=True)
             try:
-                out["rows"].append(mesh_and_score(ws, method, mesher, resolution, SCENES[scene]["eval"]))
+                out["rows"].append(
+                    mesh_and_score(ws, method, mesher, resolution, SCENES[scene]["eval"])
+                )
             except RuntimeError as e:
-                out["rows"].append({"run": method, "mesher": mesher, "error": str(e).splitlines()[-1]})
+                out["rows"].append(
+                    {"run": method, "mesher": mesher, "error": str(e).splitlines()[-1]}
+                )
     return out
 
 
@@ -102,13 +161,23 @@ def keep_other_methods(res: dict, previous: Path) -> None:
 
 
 def markdown(res: dict) -> str:
-    lines = [f"# mesh benchmark: {res['scene']} ({res['date']})", "",
-             (f"Training budget {res['budget_s']:.0f} s per method, 2 threads, load average at start "
-              f"{res['load_average']} (shared machine: wall times are inflated). Geometry in original "
-              "units; tau = 1 % of the ground truth's bounding-box diagonal; completeness and recall "
-              "count the ground truth some view saw (by its depth maps) when the dataset has them."), "",
-             ("| run | mesher | steps | faces | Chamfer | accuracy | completeness | precision | recall "
-              "| F-score | normal cons. | GT observed | test PSNR |"), "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# mesh benchmark: {res['scene']} ({res['date']})",
+        "",
+        (
+            f"Training budget {res['budget_s']:.0f} s per method, 2 threads, load average at start "
+            f"{res['load_average']} (shared machine: wall times are inflated). Geometry in original "
+            "units; tau = 1 % of the ground truth's bounding-box diagonal; completeness and recall "
+            "count the ground truth some view saw (by its depth maps) when the dataset has them."
+        ),
+        "",
+        (
+            "| run | mesher | steps | faces | Chamfer | accuracy | completeness | precision | recall "
+            "| F-score | normal cons. | GT observed | test PSNR |"
+        ),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
     def fmt(v, f=".4f"):
         return "–" if v is None else format(v, f)
 
@@ -116,12 +185,26 @@ def markdown(res: dict) -> str:
         if "error" in r:
             lines.append(f"| {r['run']} | {r['mesher']} | failed: {r['error'][:80]} |")
             continue
-        lines.append(" | ".join([
-            f"| {r['run']}" + (f" ({r['from_results_of'][:16]})" if "from_results_of" in r else ""), r["mesher"], str(res["training"][r["run"]]["steps"]), str(r["faces"]),
-            fmt(r.get("chamfer")), fmt(r.get("accuracy")), fmt(r.get("completeness")), fmt(r.get("precision"), ".3f"),
-            fmt(r.get("recall"), ".3f"), fmt(r.get("fscore"), ".3f"), fmt(r.get("normal_consistency"), ".3f"),
-            fmt(r.get("gt_observed_fraction"), ".3f"),
-            fmt(r.get("test_psnr"), ".2f") + " |"]))
+        lines.append(
+            " | ".join(
+                [
+                    f"| {r['run']}"
+                    + (f" ({r['from_results_of'][:16]})" if "from_results_of" in r else ""),
+                    r["mesher"],
+                    str(res["training"][r["run"]]["steps"]),
+                    str(r["faces"]),
+                    fmt(r.get("chamfer")),
+                    fmt(r.get("accuracy")),
+                    fmt(r.get("completeness")),
+                    fmt(r.get("precision"), ".3f"),
+                    fmt(r.get("recall"), ".3f"),
+                    fmt(r.get("fscore"), ".3f"),
+                    fmt(r.get("normal_consistency"), ".3f"),
+                    fmt(r.get("gt_observed_fraction"), ".3f"),
+                    fmt(r.get("test_psnr"), ".2f") + " |",
+                ]
+            )
+        )
     taus = {r.get("tau") for r in res["rows"] if r.get("tau")}
     if taus:
         lines += ["", f"tau = {', '.join(f'{t:.4f}' for t in sorted(taus))} (original units)"]
@@ -132,19 +215,43 @@ def markdown(res: dict) -> str:
 @click.option("--scenes", default="sample,walnut", show_default=True)
 @click.option("--methods", default="ngp,3dgs", show_default=True)
 @click.option("--budget", default=240.0, show_default=True, help="Training seconds per method.")
-@click.option("--resolution", default=256, show_default=True, help="Mesh samples along the box's longest side.")
-@click.option("--work", default=str(ROOT / "bench" / "work"), show_default=True, help="Workspaces folder.")
+@click.option(
+    "--resolution",
+    default=256,
+    show_default=True,
+    help="Mesh samples along the box's longest side.",
+)
+@click.option(
+    "--work", default=str(ROOT / "bench" / "work"), show_default=True, help="Workspaces folder."
+)
 @click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
-@click.option("--reuse-runs", is_flag=True, help="Mesh and score finished runs again instead of retraining.")
-def main(scenes: str, methods: str, budget: float, resolution: int, work: str, out_dir: str,
-         reuse_runs: bool) -> None:
+@click.option(
+    "--reuse-runs", is_flag=True, help="Mesh and score finished runs again instead of retraining."
+)
+def main(
+    scenes: str,
+    methods: str,
+    budget: float,
+    resolution: int,
+    work: str,
+    out_dir: str,
+    reuse_runs: bool,
+) -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for scene in scenes.split(","):
         load = os.getloadavg()
-        res = bench_scene(scene, methods.split(","), budget, resolution, Path(work) / "mesh", reuse_runs)
-        res.update({"date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "budget_s": budget,
-                    "load_average": [round(x, 2) for x in load], "resolution": resolution})
+        res = bench_scene(
+            scene, methods.split(","), budget, resolution, Path(work) / "mesh", reuse_runs
+        )
+        res.update(
+            {
+                "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                "budget_s": budget,
+                "load_average": [round(x, 2) for x in load],
+                "resolution": resolution,
+            }
+        )
         keep_other_methods(res, out / f"mesh_{scene}.json")
         (out / f"mesh_{scene}.json").write_text(json.dumps(res, indent=1) + "\n")
         (out / f"mesh_{scene}.md").write_text(markdown(res))

@@ -24,9 +24,9 @@ import numpy as np
 
 import recon  # noqa: F401  (before pycolmap: recon imports zlib first)
 from recon.cameras.conventions import opencv_c2w_from_opengl_c2w
+from recon.io.atomic import atomic_write_json
 from recon.metrics.pose import pose_errors
 from recon.sfm.colmap_sfm import SfmConfig, run_sfm
-from recon.workspace.atomic import atomic_write_json
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fox"
 

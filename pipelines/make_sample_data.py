@@ -22,6 +22,7 @@ import torch
 
 from recon.cameras import Cameras
 from recon.cameras.conventions import opengl_c2w_from_opencv_c2w
+from recon.io.atomic import atomic_path, atomic_write_json
 from recon.io.exr import write_depth_exr
 from recon.synthetic.scene import (
     SceneConfig,
@@ -31,7 +32,6 @@ from recon.synthetic.scene import (
     ring_cameras,
     scene_trimesh,
 )
-from recon.workspace.atomic import atomic_path, atomic_write_json
 
 
 @dataclass(frozen=True)

@@ -16,14 +16,24 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 SAMPLE_DATA = REPO / "sample_data"
 
 
-def recon_cli(*args: str, check: bool = True, timeout: float = 600, env=None) -> subprocess.CompletedProcess:
+def recon_cli(
+    *args: str, check: bool = True, timeout: float = 600, env=None
+) -> subprocess.CompletedProcess:
     """Run the real `recon` command in a subprocess (as a user or CI would)."""
     full_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
-    proc = subprocess.run([sys.executable, "-m", "recon.cli", *args], check=False,
-                          capture_output=True, text=True,
-                          timeout=timeout, env=full_env, cwd=REPO)
+    proc = subprocess.run(
+        [sys.executable, "-m", "recon.cli", *args],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=full_env,
+        cwd=REPO,
+    )
     if check and proc.returncode != 0:
-        raise AssertionError(f"recon {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}")
+        raise AssertionError(
+            f"recon {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+        )
     return proc
 
 
@@ -47,7 +57,9 @@ def make_blender_dataset(root: Path, n_train: int = 4, n_test: int = 2, size: in
             c2w = np.eye(4)
             c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -fwd, eye  # OpenGL axes
             frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
-        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": frames}))
+        (root / f"transforms_{split}.json").write_text(
+            json.dumps({"camera_angle_x": 0.69, "frames": frames})
+        )
     return root
 
 
@@ -77,15 +89,17 @@ def sphere_scene(n_cams: int = 8, size: int = 24, radius: float = 0.5):
 
     from recon.cameras import Cameras, camera_rays
     from recon.cameras.cameras import invert_rigid
+    from recon.cameras.look_at import look_at
     from recon.models.base import SceneInfo, TrainData
-    from recon.render.paths import look_at
 
     angles = torch.linspace(0, 2 * np.pi, n_cams + 1)[:-1]
-    eye = torch.stack([1.6 * torch.cos(angles), 1.6 * torch.sin(angles), 0.6 * torch.ones(n_cams)], -1)
-    c2w = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0, 1]))
+    eye = torch.stack(
+        [1.6 * torch.cos(angles), 1.6 * torch.sin(angles), 0.6 * torch.ones(n_cams)], -1
+    )
+    cam_from_world = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0, 1]))
     f = size * 1.2
     K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]]).expand(n_cams, 3, 3).clone()
-    cams = Cameras(K, c2w, torch.full((n_cams,), size), torch.full((n_cams,), size))
+    cams = Cameras(K, cam_from_world, torch.full((n_cams,), size), torch.full((n_cams,), size))
     images = []
     for i in range(n_cams):
         o, d, _ = camera_rays(cams, i)
@@ -96,13 +110,20 @@ def sphere_scene(n_cams: int = 8, size: int = 24, radius: float = 0.5):
         n = torch.nn.functional.normalize(o + t[..., None] * d, dim=-1)
         img = torch.where((disc > 0)[..., None], 0.5 + 0.5 * n, torch.ones(3))
         images.append(img)
-    info = SceneInfo(aabb=torch.tensor([[-0.7] * 3, [0.7] * 3]), unbounded=False,
-                     background=torch.ones(3), near=0.05, far=4.0)
+    info = SceneInfo(
+        aabb=torch.tensor([[-0.7] * 3, [0.7] * 3]),
+        unbounded=False,
+        background=torch.ones(3),
+        near=0.05,
+        far=4.0,
+    )
     del invert_rigid
     return TrainData(torch.stack(images).float(), cams), info
 
 
-def write_sphere_dataset(root: Path, n_train: int = 12, n_test: int = 3, size: int = 32, radius: float = 0.5) -> Path:
+def write_sphere_dataset(
+    root: Path, n_train: int = 12, n_test: int = 3, size: int = 32, radius: float = 0.5
+) -> Path:
     """The analytic sphere as a Blender-style dataset on disk: RGBA PNGs, transforms_{train,test}.json
     (OpenGL c2w), metric z-depth EXRs and the ground-truth mesh (`gt_mesh_path`)."""
     import cv2
@@ -130,12 +151,28 @@ def write_sphere_dataset(root: Path, n_train: int = 12, n_test: int = 3, size: i
             rgba[..., :3] = np.where(hit[..., None].numpy(), rgba[..., :3], 0)
             bgra = cv2.cvtColor((rgba * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGBA2BGRA)
             cv2.imwrite(str(root / split / f"r_{k}.png"), bgra)
-            write_depth_exr(root / split / f"r_{k}_depth.exr", torch.where(hit, t * z, 0).numpy().astype(np.float32))
+            write_depth_exr(
+                root / split / f"r_{k}_depth.exr",
+                torch.where(hit, t * z, 0).numpy().astype(np.float32),
+            )
             c2w = opengl_c2w_from_opencv_c2w(data.cameras.world_from_cam[i].double().numpy())
-            frames.append({"file_path": f"./{split}/r_{k}", "depth_file_path": f"{split}/r_{k}_depth.exr",
-                           "transform_matrix": c2w.tolist()})
-        meta = {"fl_x": f, "fl_y": f, "cx": size / 2, "cy": size / 2, "w": size, "h": size,
-                "gt_mesh_path": "mesh.ply", "frames": frames}
+            frames.append(
+                {
+                    "file_path": f"./{split}/r_{k}",
+                    "depth_file_path": f"{split}/r_{k}_depth.exr",
+                    "transform_matrix": c2w.tolist(),
+                }
+            )
+        meta = {
+            "fl_x": f,
+            "fl_y": f,
+            "cx": size / 2,
+            "cy": size / 2,
+            "w": size,
+            "h": size,
+            "gt_mesh_path": "mesh.ply",
+            "frames": frames,
+        }
         (root / f"transforms_{split}.json").write_text(json.dumps(meta))
     return root
 

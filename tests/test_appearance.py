@@ -24,7 +24,9 @@ def test_corrections_start_at_identity_and_their_mean_is_identity():
 def test_gradients_against_finite_differences():
     deltas = torch.randn(3, 3, 4, dtype=torch.float64, requires_grad=True)
     rgb = torch.rand(5, 5, 3, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda d, c: affine_colour(c, centred_corrections(d)[1]), (deltas, rgb))
+    assert torch.autograd.gradcheck(
+        lambda d, c: affine_colour(c, centred_corrections(d)[1]), (deltas, rgb)
+    )
 
 
 def test_learns_an_exposure_difference():
@@ -53,12 +55,19 @@ def test_neighbour_correction_worked_example():
     corr = torch.stack([1.2 * torch.eye(3, 4), 0.8 * torch.eye(3, 4), 5 * torch.eye(3, 4)])
     centers = torch.tensor([[1.0, 0, 0], [-3.0, 0, 0], [9.0, 0, 0]])
     directions = torch.tensor([[0.0, 0, 1]]).repeat(3, 1)
-    out = neighbour_correction(corr, centers, directions, torch.zeros(3), torch.tensor([0.0, 0, 1]), k=2)
+    out = neighbour_correction(
+        corr, centers, directions, torch.zeros(3), torch.tensor([0.0, 0, 1]), k=2
+    )
     assert out[0, 0].item() == pytest.approx(1.1)  # weights 3/4 and 1/4
     own = neighbour_correction(corr, centers, directions, centers[2], directions[2])
     assert torch.equal(own, corr[2])  # a training camera keeps its own correction
     # camera 0 is nearer (1 against 1.5) but looks the other way: d = 1 + 0.5 * 2 = 2 > 1.5
-    turned = neighbour_correction(corr, torch.tensor([[1.0, 0, 0], [-1.5, 0, 0], [9.0, 0, 0]]),
-                                  torch.tensor([[0.0, 0, -1], [0, 0, 1], [0, 0, 1]]),
-                                  torch.zeros(3), torch.tensor([0.0, 0, 1]), k=1)
+    turned = neighbour_correction(
+        corr,
+        torch.tensor([[1.0, 0, 0], [-1.5, 0, 0], [9.0, 0, 0]]),
+        torch.tensor([[0.0, 0, -1], [0, 0, 1], [0, 0, 1]]),
+        torch.zeros(3),
+        torch.tensor([0.0, 0, 1]),
+        k=1,
+    )
     assert torch.equal(turned, corr[1])

@@ -15,7 +15,9 @@ from recon.cameras.conventions import (
 
 
 def K_problem1():
-    return intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (800.0, 800.0, 320.0, 240.0)))
+    return intrinsics_matrix(
+        *(torch.tensor(v, dtype=torch.float64) for v in (800.0, 800.0, 320.0, 240.0))
+    )
 
 
 def test_seed_problem1_projection_exact():
@@ -29,7 +31,9 @@ def test_seed_problem1_projection_exact():
 
 def test_project_unproject_round_trip_batched():
     g = torch.Generator().manual_seed(0)
-    K = intrinsics_matrix(*(torch.rand(5, generator=g, dtype=torch.float64) * 500 + 100 for _ in range(4)))
+    K = intrinsics_matrix(
+        *(torch.rand(5, generator=g, dtype=torch.float64) * 500 + 100 for _ in range(4))
+    )
     pts = torch.randn(5, 7, 3, generator=g, dtype=torch.float64)
     pts[..., 2] = pts[..., 2].abs() + 0.5
     uv, z = project_points(pts, K[:, None])
@@ -43,7 +47,9 @@ def test_rays_pass_through_pixel_centres():
     w2c[:3, 3] = torch.tensor([0.1, 0.2, 0.3])
     cams = Cameras(K[None], invert_rigid(w2c)[None], torch.tensor([640]), torch.tensor([480]))
     o, d, z_per_t = camera_rays(cams, 0)
-    assert o.shape == (480, 640, 3) and torch.allclose(d.norm(dim=-1), torch.ones(480, 640, dtype=torch.float64))
+    assert o.shape == (480, 640, 3) and torch.allclose(
+        d.norm(dim=-1), torch.ones(480, 640, dtype=torch.float64)
+    )
     # a point along the ray of pixel (row 180, col 420) projects to its centre (420.5, 180.5)
     t = 3.0
     p_world = o[180, 420] + t * d[180, 420]
@@ -75,12 +81,16 @@ def test_quaternion_conversions_match_pycolmap_xyzw():
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         R = rotation_from_quat_wxyz(q)
-        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(
+            1.0
+        )
         q_back = quat_wxyz_from_rotation(R)
         assert np.allclose(q_back, q * np.sign(q[0]), atol=1e-10)
         rot = pycolmap.Rotation3d(quat_xyzw_from_wxyz(q))
         assert np.allclose(rot.matrix(), R, atol=1e-10)
-        assert np.allclose(quat_wxyz_from_xyzw(np.asarray(rot.quat)) * np.sign(rot.quat[3]), q * np.sign(q[0]))
+        assert np.allclose(
+            quat_wxyz_from_xyzw(np.asarray(rot.quat)) * np.sign(rot.quat[3]), q * np.sign(q[0])
+        )
 
 
 def test_cameras_scaled_keeps_pixel_edges():
@@ -96,17 +106,25 @@ def test_cameras_scaled_keeps_pixel_edges():
 def test_scale_intrinsics_worked_example():
     from recon.cameras.cameras import scale_intrinsics
 
-    K = intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (1385.3, 1385.3, 538.0, 956.5)))
+    K = intrinsics_matrix(
+        *(torch.tensor(v, dtype=torch.float64) for v in (1385.3, 1385.3, 538.0, 956.5))
+    )
     K4 = scale_intrinsics(K, 269 / 1076, 478 / 1913)
     assert K4[0, 0].item() == pytest.approx(346.325) and K4[0, 2].item() == pytest.approx(134.5)
-    assert K4[1, 1].item() == pytest.approx(1385.3 * 478 / 1913) and K4[1, 2].item() == pytest.approx(239.0, abs=0.07)
+    assert K4[1, 1].item() == pytest.approx(1385.3 * 478 / 1913) and K4[
+        1, 2
+    ].item() == pytest.approx(239.0, abs=0.07)
 
 
 def test_resized_pixel_centres_are_the_centres_of_the_pixel_blocks():
     """An area-downsampled pixel averages a K x K block of the full image: the ray through its
     centre must be the ray through the centre of that block (the +0.5 convention kept)."""
-    K = intrinsics_matrix(*(torch.tensor(v, dtype=torch.float64) for v in (500.0, 520.0, 311.3, 205.7)))
-    cams = Cameras(K[None], torch.eye(4, dtype=torch.float64)[None], torch.tensor([640]), torch.tensor([480]))
+    K = intrinsics_matrix(
+        *(torch.tensor(v, dtype=torch.float64) for v in (500.0, 520.0, 311.3, 205.7))
+    )
+    cams = Cameras(
+        K[None], torch.eye(4, dtype=torch.float64)[None], torch.tensor([640]), torch.tensor([480])
+    )
     level = cams.resized(160, 120)  # K = 4
     _, d_l, _ = camera_rays(level, 0)  # (120, 160, 3)
     _, d_f, _ = camera_rays(cams, 0)

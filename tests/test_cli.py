@@ -20,7 +20,9 @@ def test_help_lists_only_implemented_commands():
 
 def test_status_and_staleness_after_input_change(tmp_path, blender_dataset):
     ws = tmp_path / "ws"
-    out = json.loads(recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws), "--json").stdout)
+    out = json.loads(
+        recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws), "--json").stdout
+    )
     assert out["splits"] == {"train": 4, "test": 2}
     st = json.loads(recon_cli("status", "-w", str(ws), "--json").stdout)
     assert [(s["stage"], s["state"]) for s in st["stages"]] == [("sfm", "done")]
@@ -41,16 +43,24 @@ def _assert_one_line_error(proc, match):
 
 def test_bad_inputs_give_one_line_errors_and_leave_no_workspace(tmp_path):
     ws = tmp_path / "ws"
-    _assert_one_line_error(recon_cli("sfm", "--from-transforms", str(tmp_path / "missing"), "-w", str(ws),
-                                     check=False), "does not exist")
+    _assert_one_line_error(
+        recon_cli(
+            "sfm", "--from-transforms", str(tmp_path / "missing"), "-w", str(ws), check=False
+        ),
+        "does not exist",
+    )
     empty = tmp_path / "empty"
     empty.mkdir()
-    _assert_one_line_error(recon_cli("sfm", "--from-transforms", str(empty), "-w", str(ws), check=False),
-                           "no transforms")
+    _assert_one_line_error(
+        recon_cli("sfm", "--from-transforms", str(empty), "-w", str(ws), check=False),
+        "no transforms",
+    )
     bad = tmp_path / "bad.json"
     bad.write_text("{broken")
-    _assert_one_line_error(recon_cli("sfm", "--from-transforms", str(bad), "-w", str(ws), check=False),
-                           "not valid JSON")
+    _assert_one_line_error(
+        recon_cli("sfm", "--from-transforms", str(bad), "-w", str(ws), check=False),
+        "not valid JSON",
+    )
     assert not ws.exists()
     _assert_one_line_error(recon_cli("status", "-w", str(ws), check=False), "not a recon workspace")
 
@@ -58,11 +68,21 @@ def test_bad_inputs_give_one_line_errors_and_leave_no_workspace(tmp_path):
 def test_failed_rerun_leaves_workspace_as_it_was(tmp_path, blender_dataset):
     ws = tmp_path / "ws"
     recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws))
-    before = {p.relative_to(ws): p.read_bytes() for p in ws.rglob("*") if p.is_file() and ".locks" not in p.parts}
+    before = {
+        p.relative_to(ws): p.read_bytes()
+        for p in ws.rglob("*")
+        if p.is_file() and ".locks" not in p.parts
+    }
     shutil.rmtree(blender_dataset / "test")  # images vanish: the rerun must fail cleanly
-    _assert_one_line_error(recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws),
-                                     check=False), "missing")
-    after = {p.relative_to(ws): p.read_bytes() for p in ws.rglob("*") if p.is_file() and ".locks" not in p.parts}
+    _assert_one_line_error(
+        recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws), check=False),
+        "missing",
+    )
+    after = {
+        p.relative_to(ws): p.read_bytes()
+        for p in ws.rglob("*")
+        if p.is_file() and ".locks" not in p.parts
+    }
     assert after == before
 
 
@@ -78,8 +98,10 @@ def test_newer_schema_and_lock_held(tmp_path, blender_dataset):
     (ws / ".locks").mkdir(exist_ok=True)
     with open(ws / ".locks" / "sfm.lock", "a+") as f:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        _assert_one_line_error(recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws),
-                                         check=False), "another recon process")
+        _assert_one_line_error(
+            recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws), check=False),
+            "another recon process",
+        )
     assert json.loads((ws / "workspace.json").read_text()) == doc
 
 
@@ -94,7 +116,9 @@ def test_lego_import_downscaled(tmp_path):
     rec = pycolmap.Reconstruction(str(ws / "sfm" / "sparse"))
     train = [im for im in rec.images.values() if im.name.startswith("train/")]
     assert len(train) == 100
-    assert {(rec.cameras[im.camera_id].width, rec.cameras[im.camera_id].height) for im in train} == {(200, 200)}
+    assert {
+        (rec.cameras[im.camera_id].width, rec.cameras[im.camera_id].height) for im in train
+    } == {(200, 200)}
     cams = json.loads((ws / "sfm" / "cameras.json").read_text())
     assert cams["background"] == [1.0, 1.0, 1.0] and not cams["unbounded"]
     st = json.loads(recon_cli("status", "-w", str(ws), "--json").stdout)

@@ -32,8 +32,11 @@ def test_limit_two_at_infinity_and_monotone():
 
 
 def test_finite_gradients_from_zero_to_huge():
-    x = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1e-20, 0, 0], [1e20, 1e20, 0], [5.0, 2.0, -1.0]],
-                     dtype=torch.float64, requires_grad=True)
+    x = torch.tensor(
+        [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1e-20, 0, 0], [1e20, 1e20, 0], [5.0, 2.0, -1.0]],
+        dtype=torch.float64,
+        requires_grad=True,
+    )
     contract(x).sum().backward()
     assert torch.isfinite(x.grad).all()
     xs = torch.randn(6, 3, dtype=torch.float64) * 3
@@ -43,8 +46,12 @@ def test_finite_gradients_from_zero_to_huge():
 def test_scene_to_unit_cube():
     aabb = torch.tensor([[0.0, 0.0, 0.0], [2.0, 4.0, 2.0]])
     x = torch.tensor([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [0.0, 0.0, 0.0]])
-    torch.testing.assert_close(normalize_to_box(x, aabb), torch.tensor([[0.0, 0, 0], [1, 1, 1], [-1, -1, -1]]))
-    torch.testing.assert_close(scene_to_unit_cube(x, aabb, False), torch.tensor([[0.5, 0.5, 0.5], [1, 1, 1], [0, 0, 0]]))
+    torch.testing.assert_close(
+        normalize_to_box(x, aabb), torch.tensor([[0.0, 0, 0], [1, 1, 1], [-1, -1, -1]])
+    )
+    torch.testing.assert_close(
+        scene_to_unit_cube(x, aabb, False), torch.tensor([[0.5, 0.5, 0.5], [1, 1, 1], [0, 0, 0]])
+    )
     far = torch.tensor([[1e9, 2.0, 1.0]])
     u = scene_to_unit_cube(torch.cat([x, far]), aabb, True)
     assert ((u >= 0) & (u <= 1)).all()

@@ -17,17 +17,42 @@ def trained(tmp_path_factory):
     data = write_sphere_dataset(root / "sphere")
     ws = root / "ws"
     recon_cli("sfm", "--from-transforms", str(data), "-w", str(ws))
-    recon_cli("train", "-w", str(ws), "--method", "plenoxel", "--steps", "150", "--eval-every", "5",
-              "--eval-views", "2", "--set", "resolutions=24,48", "--set", "upsample_steps=80",
-              "--set", "rays_per_batch=2048", "--set", "occupancy_res=24",
-              "--set", "samples_per_batch=0", "--json")
+    recon_cli(
+        "train",
+        "-w",
+        str(ws),
+        "--method",
+        "plenoxel",
+        "--steps",
+        "150",
+        "--eval-every",
+        "5",
+        "--eval-max-fraction",
+        "0",  # the test reads the whole held-out curve
+        "--eval-views",
+        "2",
+        "--set",
+        "resolutions=24,48",
+        "--set",
+        "upsample_steps=80",
+        "--set",
+        "rays_per_batch=2048",
+        "--set",
+        "occupancy_res=24",
+        "--set",
+        "samples_per_batch=0",
+        "--json",
+    )
     return ws
 
 
 def test_train_writes_run_log_and_model(trained):
     run = json.loads((trained / "runs" / "plenoxel" / "run.json").read_text())
     assert run["status"] == "done" and run["stop_reason"] == "steps" and run["steps"] == 150
-    log = [json.loads(ln) for ln in (trained / "runs" / "plenoxel" / "log.jsonl").read_text().splitlines()]
+    log = [
+        json.loads(ln)
+        for ln in (trained / "runs" / "plenoxel" / "log.jsonl").read_text().splitlines()
+    ]
     curve = [e["test_psnr"] for e in log if "test_psnr" in e]
     assert len(curve) >= 2 and curve[-1] > 18.0, curve
 
@@ -40,13 +65,27 @@ def test_render_writes_png_and_metric_depth(trained):
     both = (depth > 0) & (gt > 0)
     assert both.sum() > 50
     assert np.median(np.abs(depth[both] - gt[both])) < 0.05  # metric (original) units
-    recon_cli("render", "-w", str(trained), "--run", "plenoxel", "--path", "orbit", "--frames", "4", "--video")
+    recon_cli(
+        "render",
+        "-w",
+        str(trained),
+        "--run",
+        "plenoxel",
+        "--path",
+        "orbit",
+        "--frames",
+        "4",
+        "--video",
+    )
     assert (trained / "runs" / "plenoxel" / "renders" / "orbit" / "video.mp4").stat().st_size > 0
 
 
 def test_mesh_and_eval_against_ground_truth(trained):
-    mesh = json.loads(recon_cli("mesh", "-w", str(trained), "--run", "plenoxel", "--resolution", "64",
-                                "--json").stdout)
+    mesh = json.loads(
+        recon_cli(
+            "mesh", "-w", str(trained), "--run", "plenoxel", "--resolution", "64", "--json"
+        ).stdout
+    )
     assert mesh["faces"] > 100
     res = json.loads(recon_cli("eval", "-w", str(trained), "--json").stdout)["plenoxel"]
     assert res["mean"]["psnr"] > 18 and 0 < res["mean"]["ssim"] <= 1
@@ -57,30 +96,70 @@ def test_mesh_and_eval_against_ground_truth(trained):
 
 
 def test_existing_run_is_refused_and_resume_continues(trained):
-    proc = recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--steps", "5", check=False)
+    proc = recon_cli(
+        "train", "-w", str(trained), "--method", "plenoxel", "--steps", "5", check=False
+    )
     assert proc.returncode != 0 and "already exists" in proc.stderr
-    out = json.loads(recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--run", "plenoxel",
-                               "--resume", "--steps", "160", "--json").stdout)
+    out = json.loads(
+        recon_cli(
+            "train",
+            "-w",
+            str(trained),
+            "--method",
+            "plenoxel",
+            "--run",
+            "plenoxel",
+            "--resume",
+            "--steps",
+            "160",
+            "--json",
+        ).stdout
+    )
     assert out["steps"] == 160
 
 
 def test_forced_rerun_that_fails_keeps_the_old_run(trained):
     before = (trained / "runs" / "plenoxel" / "model.pt").read_bytes()
     record = json.loads((trained / "workspace.json").read_text())["stages"]["train/plenoxel"]
-    proc = recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--force", "--set",
-                     "resolutions=24,48", "--set", "no_such_option=1", check=False)
+    proc = recon_cli(
+        "train",
+        "-w",
+        str(trained),
+        "--method",
+        "plenoxel",
+        "--force",
+        "--set",
+        "resolutions=24,48",
+        "--set",
+        "no_such_option=1",
+        check=False,
+    )
     assert proc.returncode != 0 and "no_such_option" in proc.stderr
     assert (trained / "runs" / "plenoxel" / "model.pt").read_bytes() == before
-    assert json.loads((trained / "workspace.json").read_text())["stages"]["train/plenoxel"] == record
+    assert (
+        json.loads((trained / "workspace.json").read_text())["stages"]["train/plenoxel"] == record
+    )
     assert sorted(p.name for p in (trained / "runs").iterdir()) == sorted(
-        p.name for p in (trained / "runs").iterdir() if not p.name.startswith("."))
+        p.name for p in (trained / "runs").iterdir() if not p.name.startswith(".")
+    )
 
 
 def test_3dgs_train_render_and_splat_export(trained):
     from recon.gaussians.ply import read_splat_ply
 
-    recon_cli("train", "-w", str(trained), "--method", "3dgs", "--steps", "30", "--eval-views", "1",
-              "--set", "init_points=500")
+    recon_cli(
+        "train",
+        "-w",
+        str(trained),
+        "--method",
+        "3dgs",
+        "--steps",
+        "30",
+        "--eval-views",
+        "1",
+        "--set",
+        "init_points=500",
+    )
     recon_cli("render", "-w", str(trained), "--run", "3dgs")
     out = json.loads(recon_cli("export", "-w", str(trained), "--run", "3dgs", "--json").stdout)
     ply = read_splat_ply(out["path"])
@@ -91,12 +170,39 @@ def test_3dgs_train_render_and_splat_export(trained):
     proc = recon_cli("export", "-w", str(trained), "--run", "plenoxel", check=False)
     assert proc.returncode != 0 and "3dgs" in proc.stderr
     # the exported file seeds a new run through the CLI flag (round trip of the PLY format)
-    recon_cli("train", "-w", str(trained), "--method", "3dgs", "--run", "from-ply", "--init-from-ply",
-              out["path"], "--steps", "1", "--eval-views", "1")
+    recon_cli(
+        "train",
+        "-w",
+        str(trained),
+        "--method",
+        "3dgs",
+        "--run",
+        "from-ply",
+        "--init-from-ply",
+        out["path"],
+        "--steps",
+        "1",
+        "--eval-views",
+        "1",
+    )
     run = json.loads((trained / "runs" / "from-ply" / "run.json").read_text())
     assert run["config"]["init_ply"] == str(Path(out["path"]).resolve())
-    assert json.loads(recon_cli("export", "-w", str(trained), "--run", "from-ply", "--json").stdout)[
-        "gaussians"] == out["gaussians"]  # one step densifies nothing
-    proc = recon_cli("train", "-w", str(trained), "--method", "plenoxel", "--run", "x", "--init-from-ply",
-                     out["path"], check=False)
+    assert (
+        json.loads(recon_cli("export", "-w", str(trained), "--run", "from-ply", "--json").stdout)[
+            "gaussians"
+        ]
+        == out["gaussians"]
+    )  # one step densifies nothing
+    proc = recon_cli(
+        "train",
+        "-w",
+        str(trained),
+        "--method",
+        "plenoxel",
+        "--run",
+        "x",
+        "--init-from-ply",
+        out["path"],
+        check=False,
+    )
     assert proc.returncode != 0 and "3dgs" in proc.stderr

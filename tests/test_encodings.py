@@ -1,4 +1,4 @@
-"""Positional encoding: seed Problem 2 dimensions and the seed's exact layout."""
+"""Positional encoding: the output dimensions and layout of Mildenhall et al. 2020 (eq. 4)."""
 
 import math
 
@@ -22,7 +22,9 @@ def test_layout_matches_seed_reference_written_out():
     for d in range(3):  # per coordinate: its L sines, then its L cosines
         expected += [math.sin(2**j * math.pi * x[0, d].item()) for j in range(L)]
         expected += [math.cos(2**j * math.pi * x[0, d].item()) for j in range(L)]
-    torch.testing.assert_close(positional_encoding(x, L)[0], torch.tensor(expected, dtype=torch.float64))
+    torch.testing.assert_close(
+        positional_encoding(x, L)[0], torch.tensor(expected, dtype=torch.float64)
+    )
 
 
 def test_highest_band_wavelength_problem2():

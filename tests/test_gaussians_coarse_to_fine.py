@@ -15,10 +15,14 @@ def test_schedule_worked_example():
 
 
 def _gaussian(x: float, requires_grad=False) -> dict:
-    return {"means": torch.tensor([[x, -0.03, 2.0]], requires_grad=requires_grad),
-            "quats": torch.tensor([[1.0, 0.1, 0.2, 0.0]]), "log_scales": torch.log(torch.tensor([[0.3, 0.2, 0.25]])),
-            "opacity_logits": torch.tensor([2.0]), "sh_dc": torch.tensor([[[0.4, -0.2, 0.1]]]),
-            "sh_rest": torch.zeros(1, 15, 3)}
+    return {
+        "means": torch.tensor([[x, -0.03, 2.0]], requires_grad=requires_grad),
+        "quats": torch.tensor([[1.0, 0.1, 0.2, 0.0]]),
+        "log_scales": torch.log(torch.tensor([[0.3, 0.2, 0.25]])),
+        "opacity_logits": torch.tensor([2.0]),
+        "sh_dc": torch.tensor([[[0.4, -0.2, 0.1]]]),
+        "sh_rest": torch.zeros(1, 15, 3),
+    }
 
 
 def test_ndc_mean_gradient_is_the_same_at_every_resolution():
@@ -31,15 +35,20 @@ def test_ndc_mean_gradient_is_the_same_at_every_resolution():
     from recon.gaussians.render import composite_rgb, project_splats
 
     def camera(size):
-        K = intrinsics_matrix(*(torch.tensor([v]) for v in (float(size), float(size), size / 2, size / 2)))
+        K = intrinsics_matrix(
+            *(torch.tensor([v]) for v in (float(size), float(size), size / 2, size / 2))
+        )
         return Cameras(K, torch.eye(4)[None], torch.tensor([size]), torch.tensor([size]))
 
     with torch.no_grad():
-        full_target, _ = composite_rgb(project_splats(_gaussian(0.15), camera(128), 0), torch.ones(3))
+        full_target, _ = composite_rgb(
+            project_splats(_gaussian(0.15), camera(128), 0), torch.ones(3)
+        )
     ndc, px = [], []
     for size in (128, 64):
-        target = torch.nn.functional.interpolate(full_target.permute(2, 0, 1)[None], size=(size, size),
-                                                 mode="area")[0].permute(1, 2, 0)
+        target = torch.nn.functional.interpolate(
+            full_target.permute(2, 0, 1)[None], size=(size, size), mode="area"
+        )[0].permute(1, 2, 0)
         splats = project_splats(_gaussian(0.05, requires_grad=True), camera(size), 0)
         splats.means2d.retain_grad()
         rgb, _ = composite_rgb(splats, torch.ones(3))

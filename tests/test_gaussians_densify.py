@@ -9,21 +9,30 @@ from recon.gaussians import densify
 from recon.gaussians.densify import DensifyStrategy
 from recon.gaussians.optim import make_adam
 
-LRS = {"means": 0.01, "quats": 0.01, "log_scales": 0.01, "opacity_logits": 0.01, "sh_dc": 0.01,
-       "sh_rest": 0.01}
+LRS = {
+    "means": 0.01,
+    "quats": 0.01,
+    "log_scales": 0.01,
+    "opacity_logits": 0.01,
+    "sh_dc": 0.01,
+    "sh_rest": 0.01,
+}
 
 
 def four_gaussians():
     """0: small, 1: large, 2: nearly transparent, 3: ordinary; after one Adam step."""
-    params = nn.ParameterDict({
-        "means": nn.Parameter(torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])),
-        "quats": nn.Parameter(torch.tensor([[1.0, 0, 0, 0]] * 4)),
-        "log_scales": nn.Parameter(torch.log(torch.tensor([[0.001] * 3, [0.5, 0.2, 0.1],
-                                                           [0.005] * 3, [0.005] * 3]))),
-        "opacity_logits": nn.Parameter(torch.logit(torch.tensor([0.5, 0.5, 0.001, 0.5]))),
-        "sh_dc": nn.Parameter(torch.arange(12.0).reshape(4, 1, 3)),
-        "sh_rest": nn.Parameter(torch.zeros(4, 15, 3)),
-    })
+    params = nn.ParameterDict(
+        {
+            "means": nn.Parameter(torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])),
+            "quats": nn.Parameter(torch.tensor([[1.0, 0, 0, 0]] * 4)),
+            "log_scales": nn.Parameter(
+                torch.log(torch.tensor([[0.001] * 3, [0.5, 0.2, 0.1], [0.005] * 3, [0.005] * 3]))
+            ),
+            "opacity_logits": nn.Parameter(torch.logit(torch.tensor([0.5, 0.5, 0.001, 0.5]))),
+            "sh_dc": nn.Parameter(torch.arange(12.0).reshape(4, 1, 3)),
+            "sh_rest": nn.Parameter(torch.zeros(4, 15, 3)),
+        }
+    )
     optimizer = make_adam(params, LRS)
     for p in params.values():
         p.grad = torch.ones_like(p)
@@ -58,8 +67,15 @@ def test_clone_split_prune_keep_optimizer_state_consistent():
     parent_mean = params["means"][1].detach().clone()
     parent_scale = torch.exp(params["log_scales"][1]).detach()
     gen = torch.Generator().manual_seed(0)
-    counts = densify.densify_and_prune(DensifyStrategy(grad_threshold=0.3), params, optimizer,
-                                       state, step=10, scene_extent=1.0, generator=gen)
+    counts = densify.densify_and_prune(
+        DensifyStrategy(grad_threshold=0.3),
+        params,
+        optimizer,
+        state,
+        step=10,
+        scene_extent=1.0,
+        generator=gen,
+    )
     assert counts == {"cloned": 1, "split": 1, "pruned": 2}  # the split parent and Gaussian 2
     # Survivors in order: 0, 3 (originals), clone of 0, two children of 1.
     assert params["means"].shape[0] == 5
@@ -119,8 +135,9 @@ def test_opacity_reset_clamps_and_zeroes_its_moments():
 def test_schedule(step, densifies):
     """Densify when (step + 1) is a multiple of the interval, after start and before stop."""
     params, optimizer, state = four_gaussians()
-    strategy = DensifyStrategy(grad_threshold=0.3, start=50, stop=300, interval=100,
-                               reset_interval=10_000)
+    strategy = DensifyStrategy(
+        grad_threshold=0.3, start=50, stop=300, interval=100, reset_interval=10_000
+    )
     new_state = densify.post_step(strategy, params, optimizer, state, step, 1.0)
     assert (params["means"].shape[0] != 4) == densifies
     assert (new_state is not state) == densifies

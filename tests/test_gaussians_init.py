@@ -8,7 +8,6 @@ import torch
 
 from recon.cameras import Cameras
 from recon.fields.sh import C0
-from recon.gaussians.bench import orbit_cameras
 from recon.gaussians.init import (
     gaussians_from_points,
     image_colors,
@@ -17,8 +16,9 @@ from recon.gaussians.init import (
     sample_in_hull,
     sample_in_shell,
 )
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.models.base import SceneInfo, TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.synthetic.splats import orbit_cameras
 
 
 def test_knn_scale_worked_example():
@@ -41,8 +41,13 @@ def test_init_from_points_matches_the_reference_conventions():
 
 
 def test_random_init_fills_the_box_when_there_are_no_points():
-    scene = SceneInfo(aabb=torch.tensor([[-2.0, 0, 0], [2, 1, 3]]), unbounded=False,
-                      background=torch.zeros(3), near=0.1, far=6.0)
+    scene = SceneInfo(
+        aabb=torch.tensor([[-2.0, 0, 0], [2, 1, 3]]),
+        unbounded=False,
+        background=torch.zeros(3),
+        near=0.1,
+        far=6.0,
+    )
     g = initial_gaussians(GaussiansConfig(**{**PRESETS["fast"], "init_points": 500}), scene)
     assert g["means"].shape == (500, 3)
     assert (g["means"] >= scene.aabb[0]).all() and (g["means"] <= scene.aabb[1]).all()
@@ -77,12 +82,12 @@ def test_hull_sampling_drops_background_points():
     assert len(points) == 50
 
 
-
 def test_shell_points_lie_beyond_the_cameras_with_their_image_colours():
     cameras = orbit_cameras(6, 32)  # centres at distance sqrt(3^2 + 0.5^2) from the origin
     images = torch.rand(6, 32, 32, 3)
-    points, colors = sample_in_shell(torch.zeros(3), cameras.centers, 2.0, 300, images,
-                                     cameras, seed=0)
+    points, colors = sample_in_shell(
+        torch.zeros(3), cameras.centers, 2.0, 300, images, cameras, seed=0
+    )
     r0 = 1.1 * math.hypot(3.0, 0.5)
     r = points.norm(dim=-1)
     assert len(points) == 300 and (r >= r0 - 1e-4).all() and (r <= 2 * r0 + 1e-4).all()
@@ -95,8 +100,13 @@ def test_unbounded_image_init_also_fills_the_background(unbounded):
     """Cameras on a radius-3 orbit, scene box [-0.5, 0.5]^3: a bounded scene keeps every
     initial Gaussian in the box, an unbounded one puts init_far_fraction of them outside it."""
     cameras = orbit_cameras(6, 32)
-    scene = SceneInfo(aabb=torch.tensor([[-0.5] * 3, [0.5] * 3]), unbounded=unbounded,
-                      background=torch.ones(3), near=0.1, far=100.0)
+    scene = SceneInfo(
+        aabb=torch.tensor([[-0.5] * 3, [0.5] * 3]),
+        unbounded=unbounded,
+        background=torch.ones(3),
+        near=0.1,
+        far=100.0,
+    )
     config = GaussiansConfig(**{**PRESETS["fast"], "init_points": 400})
     model = GaussianModel(config, scene)
     model._init_from_images(TrainData(torch.rand(6, 32, 32, 3) * 0.5, cameras))

@@ -5,13 +5,13 @@ import numpy as np
 import torch
 
 from recon.cameras.conventions import rotation_from_quat_wxyz
-from recon.export.splat import gaussians_to_world
-from recon.gaussians.bench import orbit_cameras, shell_gaussians
+from recon.cameras.similarity import Similarity
 from recon.gaussians.init import gaussians_from_splat_ply, sh_degree_in_use
-from recon.gaussians.model import GaussianModel, GaussiansConfig
 from recon.gaussians.ply import write_splat_ply
+from recon.gaussians.transform import gaussians_to_world
 from recon.models.base import SceneInfo
-from recon.sfm.normalize import Similarity
+from recon.models.splatting import GaussianModel, GaussiansConfig
+from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
 
 def _similarity(seed: int = 3) -> Similarity:
@@ -20,18 +20,28 @@ def _similarity(seed: int = 3) -> Similarity:
 
 
 def _scene(sim: Similarity | None) -> SceneInfo:
-    return SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=False,
-                     background=torch.tensor([1.0, 1.0, 1.0]), near=0.1, far=6.0,
-                     points=torch.rand(50, 3) * 2 - 1, point_colors=torch.rand(50, 3),
-                     scene_from_world=sim)
+    return SceneInfo(
+        aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]),
+        unbounded=False,
+        background=torch.tensor([1.0, 1.0, 1.0]),
+        near=0.1,
+        far=6.0,
+        points=torch.rand(50, 3) * 2 - 1,
+        point_colors=torch.rand(50, 3),
+        scene_from_world=sim,
+    )
 
 
 def _export_world_ply(model: GaussianModel, sim: Similarity, path) -> None:
     """What `recon export` writes: the scene-frame Gaussians in world units."""
     p = {k: v.detach().double().numpy() for k, v in model.params.items()}
-    g = {"means": p["means"], "quats": p["quats"], "log_scales": p["log_scales"],
-         "opacity_logits": p["opacity_logits"],
-         "sh": np.concatenate([p["sh_dc"], p["sh_rest"]], 1)}
+    g = {
+        "means": p["means"],
+        "quats": p["quats"],
+        "log_scales": p["log_scales"],
+        "opacity_logits": p["opacity_logits"],
+        "sh": np.concatenate([p["sh_dc"], p["sh_rest"]], 1),
+    }
     w = gaussians_to_world(g, sim.scale, sim.R, sim.t)
     write_splat_ply(path, w["means"], w["quats"], w["log_scales"], w["opacity_logits"], w["sh"])
 

@@ -8,32 +8,40 @@ import numpy as np
 import torch
 
 from recon.cameras import Cameras
+from recon.cameras.look_at import look_at
 from recon.fields.sh import C0
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgb, project_splats
 from recon.models.base import METHODS, SceneInfo, TrainData
-from recon.train.config import field_help
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.options import field_help
 
 
-def look_at(eye):
+def look_at_origin(eye):
     """OpenCV cam_from_world looking at the origin with world z up."""
     eye = torch.tensor(eye, dtype=torch.float64)
-    forward = -eye / eye.norm()
-    right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    right = right / right.norm()
-    down = torch.linalg.cross(forward, right)
-    cfw = torch.eye(4, dtype=torch.float64)
-    cfw[:3, :3] = torch.stack([right, down, forward])
-    cfw[:3, 3] = -cfw[:3, :3] @ eye
-    return cfw
+    return look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0]))
 
 
 def ring(n=8, size=32, radius=3.0):
-    cfw = torch.stack([look_at((radius * math.cos(2 * math.pi * i / n),
-                                radius * math.sin(2 * math.pi * i / n), 0.7 * math.sin(i)))
-                       for i in range(n)])
-    K = torch.tensor([[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]],
-                     dtype=torch.float64).expand(n, 3, 3).clone()
+    cfw = torch.stack(
+        [
+            look_at_origin(
+                (
+                    radius * math.cos(2 * math.pi * i / n),
+                    radius * math.sin(2 * math.pi * i / n),
+                    0.7 * math.sin(i),
+                )
+            )
+            for i in range(n)
+        ]
+    )
+    K = (
+        torch.tensor(
+            [[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]], dtype=torch.float64
+        )
+        .expand(n, 3, 3)
+        .clone()
+    )
     wh = torch.full((n,), size)
     return Cameras(K, cfw, wh, wh.clone())
 
@@ -41,25 +49,43 @@ def ring(n=8, size=32, radius=3.0):
 def synthetic_scene(size=32):
     """Six opaque coloured Gaussians seen by 8 ring cameras, rendered by our renderer."""
     gen = torch.Generator().manual_seed(0)
-    truth = {"means": torch.randn(6, 3, generator=gen) * 0.4,
-             "quats": torch.randn(6, 4, generator=gen),
-             "log_scales": torch.log(torch.rand(6, 3, generator=gen) * 0.3 + 0.1),
-             "opacity_logits": torch.full((6,), 3.0),
-             "sh_dc": (torch.rand(6, 1, 3, generator=gen) - 0.5) / C0,
-             "sh_rest": torch.zeros(6, 0, 3)}
+    truth = {
+        "means": torch.randn(6, 3, generator=gen) * 0.4,
+        "quats": torch.randn(6, 4, generator=gen),
+        "log_scales": torch.log(torch.rand(6, 3, generator=gen) * 0.3 + 0.1),
+        "opacity_logits": torch.full((6,), 3.0),
+        "sh_dc": (torch.rand(6, 1, 3, generator=gen) - 0.5) / C0,
+        "sh_rest": torch.zeros(6, 0, 3),
+    }
     cams = ring(size=size)
     with torch.no_grad():
-        images = torch.stack([composite_rgb(project_splats(truth, cams[i], 0), torch.zeros(3))[0]
-                              for i in range(len(cams))]).clamp(0, 1)
-    scene = SceneInfo(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]), unbounded=False,
-                      background=torch.zeros(3), near=0.1, far=6.0)
+        images = torch.stack(
+            [
+                composite_rgb(project_splats(truth, cams[i], 0), torch.zeros(3))[0]
+                for i in range(len(cams))
+            ]
+        ).clamp(0, 1)
+    scene = SceneInfo(
+        aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]),
+        unbounded=False,
+        background=torch.zeros(3),
+        near=0.1,
+        far=6.0,
+    )
     return scene, TrainData(images, cams)
 
 
 def config(**overrides):
-    base = {**PRESETS["fast"], "init": "random", "init_points": 300, "init_from_images": False,
-            "densify_start": 20,
-            "densify_interval": 20, "densify_grad_threshold": 0.00005, "sh_degree_interval": 30}
+    base = {
+        **PRESETS["fast"],
+        "init": "random",
+        "init_points": 300,
+        "init_from_images": False,
+        "densify_start": 20,
+        "densify_interval": 20,
+        "densify_grad_threshold": 0.00005,
+        "sh_degree_interval": 30,
+    }
     return GaussiansConfig(**{**base, **overrides})
 
 
@@ -78,8 +104,15 @@ def test_training_fits_a_tiny_scene_and_densifies():
             if p in model.optimizer.state:
                 assert model.optimizer.state[p]["exp_avg"].shape == p.shape
     assert np.mean(losses[-16:]) < 0.5 * np.mean(losses[:16])
-    psnr = np.mean([-10 * math.log10(((model.render(data.cameras[i])["rgb"] - data.images[i]) ** 2)
-                                     .mean().item()) for i in range(len(data))])
+    psnr = np.mean(
+        [
+            -10
+            * math.log10(
+                ((model.render(data.cameras[i])["rgb"] - data.images[i]) ** 2).mean().item()
+            )
+            for i in range(len(data))
+        ]
+    )
     assert psnr > baseline + 7, (psnr, baseline)
     assert len(set(counts)) > 1  # densification changed the count
     assert int(model.active_sh_degree) == 3
@@ -113,8 +146,9 @@ def test_image_init_replaces_the_random_start_at_step_0():
     model = GaussianModel(config(init_from_images=True), scene)
     random_means = model.params["means"].detach().clone()
     model.train_step(data, 0)
-    assert model.num_gaussians <= 300 and not torch.equal(model.params["means"][:5],
-                                                           random_means[:5])
+    assert model.num_gaussians <= 300 and not torch.equal(
+        model.params["means"][:5], random_means[:5]
+    )
     for group in model.optimizer.param_groups:  # the optimizer follows the new tensors
         assert group["params"][0] is model.params[group["name"]]
 
@@ -127,7 +161,9 @@ def test_render_outputs_and_normalized_depth():
     hit = out["acc"] > 0.05
     assert hit.any()
     centre_distance = 3.0  # camera ring radius; the random init fills [-1, 1]^3
-    assert ((out["depth"][hit] > centre_distance - 2.0) & (out["depth"][hit] < centre_distance + 2.0)).all()
+    assert (
+        (out["depth"][hit] > centre_distance - 2.0) & (out["depth"][hit] < centre_distance + 2.0)
+    ).all()
     assert (out["depth"][out["acc"] == 0] == 0).all()
 
 
@@ -143,12 +179,16 @@ def test_registered_with_flat_documented_config():
 
 
 def test_fit_schedules_worked_example():
-    from recon.gaussians.model import fit_schedules
+    from recon.models.splatting import fit_schedules
 
     fast = GaussiansConfig(**PRESETS["fast"])
     fitted = fit_schedules(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}))
-    assert (fitted.lr_decay_steps, fitted.densify_stop, fitted.opacity_reset_interval,
-            fitted.sh_degree_interval) == (1600, 1120, 560, 320)
+    assert (
+        fitted.lr_decay_steps,
+        fitted.densify_stop,
+        fitted.opacity_reset_interval,
+        fitted.sh_degree_interval,
+    ) == (1600, 1120, 560, 320)
     assert fit_schedules(fast) == fast  # schedule_steps 0: as configured
     long = GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 6000})  # lego-200, 10 min
     assert fit_schedules(long) == long  # a run longer than the schedules keeps them
@@ -161,7 +201,9 @@ def test_coarse_to_fine_fits_downscaled_targets_first():
     for step in range(8):
         model.train_step(data, step)
         sizes.append(sorted(data._levels))
-    assert sizes[0] == [4] and sizes[3] == [2, 4] and sizes[7] == [2, 4]  # 1/4, 1/4, 1/4, 1/2, ..., full
+    assert (
+        sizes[0] == [4] and sizes[3] == [2, 4] and sizes[7] == [2, 4]
+    )  # 1/4, 1/4, 1/4, 1/2, ..., full
     assert data.downsampled(4).images.shape[1:3] == (64, 64)
     out = model.render(data.cameras[0])  # renders at whatever size it is asked
     assert out["rgb"].shape == (256, 256, 3)
@@ -185,17 +227,34 @@ def test_appearance_learns_per_image_exposure_and_renders_with_the_nearest_corre
             model.train_step(exposed, step)
         fits[mode] = model
     on = fits["on"]
-    assert on.stats()["appearance_max_gain_dev"] > 0.05 and "appearance_max_gain_dev" not in fits["off"].stats()
-    err = {m: np.mean([float((fits[m].render(exposed.cameras[i])["rgb"] - exposed.images[i]).abs().mean())
-                       for i in range(len(data))]) for m in fits}
+    assert (
+        on.stats()["appearance_max_gain_dev"] > 0.05
+        and "appearance_max_gain_dev" not in fits["off"].stats()
+    )
+    err = {
+        m: np.mean(
+            [
+                float((fits[m].render(exposed.cameras[i])["rgb"] - exposed.images[i]).abs().mean())
+                for i in range(len(data))
+            ]
+        )
+        for m in fits
+    }
     assert err["on"] < err["off"]
     novel = ring(n=16)[3]  # between training cameras 1 and 2
     corr = centred_corrections(on.appearance.deltas.detach())
     wfc = novel.world_from_cam[0].float()
-    expected = neighbour_correction(corr, on.appearance.centers, on.appearance.directions, wfc[:3, 3], wfc[:3, 2])
-    plain = composite_rgb(project_splats(on.gaussians(), novel.to(dtype=torch.float32), 3), on.background)[0]
-    assert torch.allclose(on.render(novel.to(dtype=torch.float32))["rgb"],
-                          plain @ expected[:, :3].T + expected[:, 3], atol=1e-5)
+    expected = neighbour_correction(
+        corr, on.appearance.centers, on.appearance.directions, wfc[:3, 3], wfc[:3, 2]
+    )
+    plain = composite_rgb(
+        project_splats(on.gaussians(), novel.to(dtype=torch.float32), 3), on.background
+    )[0]
+    assert torch.allclose(
+        on.render(novel.to(dtype=torch.float32))["rgb"],
+        plain @ expected[:, :3].T + expected[:, 3],
+        atol=1e-5,
+    )
     buffer = io.BytesIO()
     torch.save({"model": on.state_dict(), "training": on.training_state()}, buffer)
     buffer.seek(0)
@@ -209,7 +268,7 @@ def test_appearance_learns_per_image_exposure_and_renders_with_the_nearest_corre
 
 
 def test_appearance_auto_follows_the_kind_of_scene():
-    from recon.gaussians.model import uses_appearance
+    from recon.models.splatting import uses_appearance
 
     scene, _ = synthetic_scene()
     cfg = config(appearance="auto")

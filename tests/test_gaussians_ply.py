@@ -8,11 +8,13 @@ from recon.gaussians.ply import read_splat_ply, splat_dtype, write_splat_ply
 
 def random_splats(G, K, seed=0):
     rng = np.random.default_rng(seed)
-    return {"means": rng.normal(size=(G, 3)).astype(np.float32),
-            "quats": rng.normal(size=(G, 4)).astype(np.float32),
-            "log_scales": rng.normal(size=(G, 3)).astype(np.float32),
-            "opacity_logits": rng.normal(size=G).astype(np.float32),
-            "sh": rng.normal(size=(G, K, 3)).astype(np.float32)}
+    return {
+        "means": rng.normal(size=(G, 3)).astype(np.float32),
+        "quats": rng.normal(size=(G, 4)).astype(np.float32),
+        "log_scales": rng.normal(size=(G, 3)).astype(np.float32),
+        "opacity_logits": rng.normal(size=G).astype(np.float32),
+        "sh": rng.normal(size=(G, K, 3)).astype(np.float32),
+    }
 
 
 def test_round_trip_degree_3(tmp_path):
@@ -34,10 +36,18 @@ def test_header_is_the_inria_layout(tmp_path):
     assert header.startswith("ply\nformat binary_little_endian 1.0\nelement vertex 3\n")
     assert props[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     assert props[9:54] == [f"f_rest_{i}" for i in range(45)]
-    assert props[54:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
-                          "rot_3"]
+    assert props[54:] == [
+        "opacity",
+        "scale_0",
+        "scale_1",
+        "scale_2",
+        "rot_0",
+        "rot_1",
+        "rot_2",
+        "rot_3",
+    ]
     assert len(raw) - len(header) == 3 * 62 * 4  # 62 float32 per Gaussian
-    vertices = np.frombuffer(raw[len(header):], dtype=splat_dtype())
+    vertices = np.frombuffer(raw[len(header) :], dtype=splat_dtype())
     # Channel-major: f_rest_0..14 are the red coefficients 1..15, f_rest_15 the first green one.
     assert vertices["f_rest_0"][1] == s["sh"][1, 1, 0]
     assert vertices["f_rest_14"][1] == s["sh"][1, 15, 0]
@@ -56,11 +66,17 @@ def test_degree_1_is_padded_with_zeros(tmp_path):
 
 
 def test_reader_accepts_fewer_f_rest_and_rejects_ascii(tmp_path):
-    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)] + [
-        "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    names = (
+        ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(9)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     values = np.arange(2 * len(names), dtype="<f4").reshape(2, -1)
-    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 2\n"
-              + "".join(f"property float {n}\n" for n in names) + "end_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 2\n"
+        + "".join(f"property float {n}\n" for n in names)
+        + "end_header\n"
+    )
     path = tmp_path / "deg1.ply"
     path.write_bytes(header.encode() + values.tobytes())
     back = read_splat_ply(path)

@@ -16,8 +16,10 @@ def camera(W=64, H=48, f=50.0, cx=30.0, cy=26.0):
     K = torch.tensor([[[f, 0, cx], [0, f * 1.1, cy], [0, 0, 1]]], dtype=F64)
     angle = 0.3
     cfw = torch.eye(4, dtype=F64)[None].clone()
-    cfw[0, :3, :3] = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
-                                   [-math.sin(angle), 0, math.cos(angle)]], dtype=F64)
+    cfw[0, :3, :3] = torch.tensor(
+        [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]],
+        dtype=F64,
+    )
     cfw[0, :3, 3] = torch.tensor([0.2, -0.1, 3.0])
     return Cameras(K, cfw, torch.tensor([W]), torch.tensor([H]))
 
@@ -50,12 +52,16 @@ def test_fused_projection_matches_torch_twin(degree):
     assert torch.allclose(fast.depths, ref.depths) and torch.allclose(fast.colors, ref.colors)
     assert (ref.colors == 0).any()  # the clamp at 0 is exercised
     gen = torch.Generator().manual_seed(7)
-    weights = [torch.randn(t.shape, generator=gen, dtype=F64)
-               for t in (ref.means2d, ref.conics, ref.depths, ref.colors)]
+    weights = [
+        torch.randn(t.shape, generator=gen, dtype=F64)
+        for t in (ref.means2d, ref.conics, ref.depths, ref.colors)
+    ]
     weights[0][~kept], weights[1][~kept] = 0.0, 0.0  # the rasterizer never sends these
 
     def loss(s):
-        return sum((w * t).sum() for w, t in zip(weights, (s.means2d, s.conics, s.depths, s.colors)))
+        return sum(
+            (w * t).sum() for w, t in zip(weights, (s.means2d, s.conics, s.depths, s.colors))
+        )
 
     names = ["means", "quats", "log_scales", "sh_dc", "sh_rest"]
     g_fast = torch.autograd.grad(loss(fast), [g[n] for n in names], allow_unused=True)
@@ -80,8 +86,10 @@ def test_guard_band_gradient_is_cut_like_the_twin():
     assert torch.equal(fast.radii, ref.radii) and bool((fast.radii > 0).all())
     out_f = fast.conics.sum() + fast.means2d.sum()
     out_r = ref.conics.sum() + ref.means2d.sum()
-    for a, b in zip(torch.autograd.grad(out_f, [g["means"], g["log_scales"]]),
-                    torch.autograd.grad(out_r, [g["means"], g["log_scales"]])):
+    for a, b in zip(
+        torch.autograd.grad(out_f, [g["means"], g["log_scales"]]),
+        torch.autograd.grad(out_r, [g["means"], g["log_scales"]]),
+    ):
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
@@ -102,12 +110,16 @@ def camera_gradients(g, cam, degree, seed):
     fast, ref = project_splats(g, cam, degree), project_splats_torch(g, cam, degree)
     kept = ref.radii > 0
     gen = torch.Generator().manual_seed(seed)
-    weights = [torch.randn(t.shape, generator=gen, dtype=F64)
-               for t in (ref.means2d, ref.conics, ref.depths, ref.colors)]
+    weights = [
+        torch.randn(t.shape, generator=gen, dtype=F64)
+        for t in (ref.means2d, ref.conics, ref.depths, ref.colors)
+    ]
     weights[0][~kept], weights[1][~kept] = 0.0, 0.0  # the rasterizer never sends these
 
     def loss(s):
-        return sum((w * t).sum() for w, t in zip(weights, (s.means2d, s.conics, s.depths, s.colors)))
+        return sum(
+            (w * t).sum() for w, t in zip(weights, (s.means2d, s.conics, s.depths, s.colors))
+        )
 
     (d_fast,) = torch.autograd.grad(loss(fast), cfw)
     (d_ref,) = torch.autograd.grad(loss(ref), cfw)

@@ -1,5 +1,5 @@
 """Quaternion -> R, Sigma = R S S^T R^T, EWA projection, the stable conic, the 3-sigma radius
-and SH colour: seed Problem 5, brute-force twins and hard cases."""
+and SH colour: a worked example, brute-force twins and hard cases."""
 
 import math
 
@@ -50,16 +50,20 @@ def test_problem5_covariances_eigenvalues_and_weight():
     assert (A, B, C) == pytest.approx((3.83e-4, -1.96e-4, 7.79e-4), abs=0.006e-4)
     dx, dy = 2.0, 1.0
     assert math.exp(-0.5 * (A * dx * dx + 2 * B * dx * dy + C * dy * dy)) == pytest.approx(
-        0.99924, abs=5e-6)
+        0.99924, abs=5e-6
+    )
 
 
 def test_problem5_through_project_gaussians():
     mean, quat, log_scales, K = problem5()
-    means2d, _conics, depths, radii = project_gaussians(mean, quat, log_scales, K,
-                                                       torch.eye(4, dtype=F64), 2000, 2000)
+    means2d, _conics, depths, radii = project_gaussians(
+        mean, quat, log_scales, K, torch.eye(4, dtype=F64), 2000, 2000
+    )
     assert means2d[0].tolist() == pytest.approx([1111 * 0.2 + 1000, -1111 * 0.1 + 1000])
     assert float(depths[0]) == 2.0
-    assert float(radii[0]) == math.ceil(3 * math.sqrt(3311.6))  # 173 px, the seed's extent
+    assert float(radii[0]) == math.ceil(
+        3 * math.sqrt(3311.6)
+    )  # 173 px: 3 sigma of the larger eigenvalue
 
 
 def test_covariance_is_the_product_of_its_factor():
@@ -119,8 +123,10 @@ def test_guard_band_clamps_x_over_z_to_1_3_times_the_frustum():
     Sigma = torch.diag(torch.tensor([0.1, 0.2, 0.3], dtype=F64))[None]  # a factor of the cov
     far_out = torch.tensor([[10.0, 0.0, 2.0]], dtype=F64)  # x/z = 5, the limit is 0.5 * 1.3
     on_edge = torch.tensor([[0.65 * 2.0, 0.0, 2.0]], dtype=F64)
-    assert torch.allclose(ewa_covariance_2d(far_out, Sigma, K, 100, 100),
-                          ewa_covariance_2d(on_edge, Sigma, K, 100, 100))
+    assert torch.allclose(
+        ewa_covariance_2d(far_out, Sigma, K, 100, 100),
+        ewa_covariance_2d(on_edge, Sigma, K, 100, 100),
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -140,8 +146,10 @@ def test_conic_is_stable_for_tiny_and_huge_determinants(dtype, scale):
 
 
 def test_conic_of_a_degenerate_covariance_is_invalid_and_finite():
-    packed = torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 1.0],
-                           [float("inf"), 0.0, 1.0]], requires_grad=True)
+    packed = torch.tensor(
+        [[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 1.0], [float("inf"), 0.0, 1.0]],
+        requires_grad=True,
+    )
     conic, valid = conic_from_cov2d(packed)
     assert not valid.any() and torch.equal(conic, torch.zeros_like(conic))
     (g,) = torch.autograd.grad(conic.sum(), packed)
@@ -180,8 +188,9 @@ def test_camera_plane_behind_and_straddling_near_plane(z, culled):
     assert all(torch.isfinite(g).all() for g in grads)
 
 
-@pytest.mark.parametrize("scale, radius", [(1e-8, math.ceil(3 * math.sqrt(0.3 + 0.1**0.5))),
-                                           (1e3, None)])
+@pytest.mark.parametrize(
+    "scale, radius", [(1e-8, math.ceil(3 * math.sqrt(0.3 + 0.1**0.5))), (1e3, None)]
+)
 def test_tiny_and_huge_scales_project_finitely(scale, radius):
     K, cfw = camera_setup()
     means = torch.tensor([[0.1, 0.0, 2.0]], dtype=F64, requires_grad=True)

@@ -8,8 +8,8 @@ import torch
 
 from recon.gaussians.projection import conic_from_cov2d, radius_3sigma
 from recon.gaussians.rasterize import ALPHA_MAX, T_MIN, rasterize_features
-from recon.gaussians.rasterize_packed import rasterize_features_packed
-from recon.gaussians.rasterize_ref import rasterize_features_ref
+from recon.gaussians.rasterize_reference import rasterize_features_reference
+from recon.gaussians.rasterize_torch import rasterize_features_torch
 from recon.gaussians.tiles import bin_gaussians, bin_gaussians_sorted, tile_bounds
 
 F64 = torch.float64
@@ -35,22 +35,26 @@ def compare(splats, W, H, atol=1e-10):
     means2d, conics, opacities, features, radii, depths = splats
     leaves = [t.clone().requires_grad_() for t in (means2d, conics, opacities, features)]
     fast = rasterize_features(*leaves, radii, depths, W, H)
-    ref = rasterize_features_ref(*leaves, radii, depths, W, H)
+    ref = rasterize_features_reference(*leaves, radii, depths, W, H)
     for a, b in zip(fast, ref):
         assert torch.allclose(a, b, atol=atol, rtol=0), (a - b).abs().max()
     gen = torch.Generator().manual_seed(123)
     g_img = torch.randn(fast[0].shape, generator=gen, dtype=fast[0].dtype)
     g_T = torch.randn(fast[1].shape, generator=gen, dtype=fast[1].dtype)
-    grads = [torch.autograd.grad((out[0] * g_img).sum() + (out[1] * g_T).sum(), leaves)
-             for out in (fast, ref)]
+    grads = [
+        torch.autograd.grad((out[0] * g_img).sum() + (out[1] * g_T).sum(), leaves)
+        for out in (fast, ref)
+    ]
     for name, a, b in zip(["means2d", "conics", "opacities", "features"], *grads):
         scale = b.abs().max().clamp_min(1.0)
         assert torch.allclose(a, b, atol=atol * scale, rtol=0), (name, (a - b).abs().max())
     return fast, ref
 
 
-@pytest.mark.parametrize("G, W, H, D, seed", [(60, 37, 29, 3, 0), (200, 48, 32, 4, 1),
-                                              (30, 16, 16, 1, 2), (120, 50, 21, 3, 3)])
+@pytest.mark.parametrize(
+    "G, W, H, D, seed",
+    [(60, 37, 29, 3, 0), (200, 48, 32, 4, 1), (30, 16, 16, 1, 2), (120, 50, 21, 3, 3)],
+)
 def test_fast_matches_reference_outputs_and_gradients(G, W, H, D, seed):
     compare(random_splats(G, W, H, D, seed), W, H)
 
@@ -67,14 +71,15 @@ def test_opaque_stack_terminates_early_like_the_reference():
 def test_float32_matches_float64_reference():
     splats = random_splats(100, 33, 40, seed=5)
     fast = rasterize_features(*[t.float() for t in splats[:4]], splats[4], splats[5], 33, 40)
-    ref = rasterize_features_ref(*splats, 33, 40)
+    ref = rasterize_features_reference(*splats, 33, 40)
     assert torch.allclose(fast[0].double(), ref[0], atol=1e-4)
     assert torch.allclose(fast[1].double(), ref[1], atol=1e-4)
 
 
 def test_gradcheck_fast_rasterizer():
     means2d, conics, opacities, features, radii, depths = random_splats(
-        4, 12, 10, D=2, seed=6, opacity=(0.3, 0.9), sigma=2.0)
+        4, 12, 10, D=2, seed=6, opacity=(0.3, 0.9), sigma=2.0
+    )
     means2d = means2d * 0.5 + 2  # keep them on the small image
 
     def fn(m, c, o, f):
@@ -92,8 +97,16 @@ def test_single_splat_weight_rule():
     cov = torch.tensor([[4.0, 1.0, 2.0]], dtype=F64)
     conics = conic_from_cov2d(cov)[0]
     o, f = 0.6, torch.tensor([[0.2, 0.4, 0.8]], dtype=F64)
-    image, T = rasterize_features(means2d, conics, torch.tensor([o], dtype=F64), f,
-                                  radius_3sigma(cov), torch.ones(1, dtype=F64), 16, 8)
+    image, T = rasterize_features(
+        means2d,
+        conics,
+        torch.tensor([o], dtype=F64),
+        f,
+        radius_3sigma(cov),
+        torch.ones(1, dtype=F64),
+        16,
+        8,
+    )
     assert torch.allclose(image[4, 8], o * f[0]) and math.isclose(float(T[4, 8]), 1 - o)
     A, B, C = conics[0].tolist()
     dx, dy = 8.5 - 10.5, 4.5 - 5.5  # pixel (x=10, y=5)
@@ -106,8 +119,16 @@ def test_alpha_is_clamped_and_faint_splats_skipped():
     cov = torch.tensor([[2.0, 0.0, 2.0]] * 2, dtype=F64)
     conics = conic_from_cov2d(cov)[0]
     opac = torch.tensor([1.0, 0.5 / 255], dtype=F64)  # clamped to 0.99 | below 1/255: skipped
-    _image, T = rasterize_features(means2d, conics, opac, torch.ones(2, 1, dtype=F64),
-                                  radius_3sigma(cov), torch.ones(2, dtype=F64), 32, 8)
+    _image, T = rasterize_features(
+        means2d,
+        conics,
+        opac,
+        torch.ones(2, 1, dtype=F64),
+        radius_3sigma(cov),
+        torch.ones(2, dtype=F64),
+        32,
+        8,
+    )
     assert float(T.min()) == pytest.approx(1 - ALPHA_MAX)
     assert torch.all(T[:, 20:] == 1.0)
 
@@ -119,8 +140,14 @@ def test_one_gaussian_and_one_covering_the_whole_image():
     means2d = torch.tensor([[20.0, 15.0], [5.0, 5.0]], dtype=F64)
     cov = torch.tensor([[1e6, 3e5, 1e6], [3.0, 0.5, 2.0]], dtype=F64)  # det ~1e12 | small
     conics = conic_from_cov2d(cov)[0]
-    splats = (means2d, conics, torch.tensor([0.7, 0.9], dtype=F64),
-              torch.rand(2, 3, dtype=F64), radius_3sigma(cov), torch.tensor([2.0, 1.0], dtype=F64))
+    splats = (
+        means2d,
+        conics,
+        torch.tensor([0.7, 0.9], dtype=F64),
+        torch.rand(2, 3, dtype=F64),
+        radius_3sigma(cov),
+        torch.tensor([2.0, 1.0], dtype=F64),
+    )
     (_image, T), _ = compare(splats, W, H)
     assert (T < 1).all()  # the big one reaches every pixel
 
@@ -131,8 +158,14 @@ def test_near_singular_2d_covariance():
     cov = torch.tensor([[1e-6, 0.0, 1e-6]], dtype=F64)
     conics = conic_from_cov2d(cov)[0]
     assert conics[0, 0] == pytest.approx(1e6)
-    splats = (means2d, conics, torch.tensor([0.8], dtype=F64), torch.ones(1, 3, dtype=F64),
-              torch.tensor([3.0], dtype=F64), torch.ones(1, dtype=F64))
+    splats = (
+        means2d,
+        conics,
+        torch.tensor([0.8], dtype=F64),
+        torch.ones(1, 3, dtype=F64),
+        torch.tensor([3.0], dtype=F64),
+        torch.ones(1, dtype=F64),
+    )
     compare(splats, 20, 16)
 
 
@@ -152,12 +185,14 @@ def test_counting_sort_binning_equals_global_key_sort(seed):
     starts_b, ids_b = bin_gaussians_sorted(bounds, depths, 70, 45)
     assert torch.equal(starts_a, starts_b) and torch.equal(ids_a, ids_b)
     for t in range(len(starts_a) - 1):  # each tile's list is front to back
-        d = depths[ids_a[starts_a[t]:starts_a[t + 1]]]
+        d = depths[ids_a[starts_a[t] : starts_a[t + 1]]]
         assert torch.all(d[1:] >= d[:-1])
 
 
 def test_tile_bounds_worked_example():
-    bounds = tile_bounds(torch.tensor([[20.0, 5.0], [-50.0, 5.0]]), torch.tensor([3.0, 3.0]), 64, 64)
+    bounds = tile_bounds(
+        torch.tensor([[20.0, 5.0], [-50.0, 5.0]]), torch.tensor([3.0, 3.0]), 64, 64
+    )
     assert bounds[0].tolist() == [1, 0, 2, 1]
     assert bounds[1, 0] == bounds[1, 2]  # entirely left of the image: no tiles
 
@@ -167,8 +202,8 @@ def test_packed_torch_rasterizer_matches_reference(G, W, H, seed):
     """The non-CPU path (segmented log-space cumsum over the tile lists), run on the CPU."""
     means2d, conics, opacities, features, radii, depths = random_splats(G, W, H, seed=seed)
     leaves = [t.clone().requires_grad_() for t in (means2d, conics, opacities, features)]
-    packed = rasterize_features_packed(*leaves, radii, depths, W, H)
-    ref = rasterize_features_ref(*leaves, radii, depths, W, H)
+    packed = rasterize_features_torch(*leaves, radii, depths, W, H)
+    ref = rasterize_features_reference(*leaves, radii, depths, W, H)
     for a, b in zip(packed, ref):
         assert torch.allclose(a, b, atol=1e-10)
     weights = [torch.randn(t.shape, dtype=F64) for t in ref]
@@ -180,7 +215,7 @@ def test_packed_torch_rasterizer_matches_reference(G, W, H, seed):
 
 def test_packed_rasterizer_terminates_early_like_the_reference():
     splats = random_splats(80, 40, 24, seed=4, opacity=(0.9, 1.0), sigma=8.0)
-    packed = rasterize_features_packed(*splats, 40, 24)
-    ref = rasterize_features_ref(*splats, 40, 24)
+    packed = rasterize_features_torch(*splats, 40, 24)
+    ref = rasterize_features_reference(*splats, 40, 24)
     assert torch.allclose(packed[0], ref[0], atol=1e-10)
     assert torch.allclose(packed[1], ref[1], atol=1e-12)

@@ -7,7 +7,7 @@ import torch
 
 from recon.cameras import Cameras
 from recon.gaussians.rasterize import rasterize_features
-from recon.gaussians.rasterize_ref import rasterize_features_ref
+from recon.gaussians.rasterize_reference import rasterize_features_reference
 from recon.gaussians.render import composite_rgbd, project_splats
 
 F64 = torch.float64
@@ -35,22 +35,29 @@ def random_gaussians(G, seed=0, degree=3):
 def render_with(rasterizer, gaussians, cam, degree=3):
     s = project_splats(gaussians, cam, degree)
     features = torch.cat([s.colors, s.depths[:, None]], -1)
-    return rasterizer(s.means2d, s.conics, s.opacities, features, s.radii, s.depths,
-                      s.width, s.height)
+    return rasterizer(
+        s.means2d, s.conics, s.opacities, features, s.radii, s.depths, s.width, s.height
+    )
 
 
 def test_gradients_of_every_parameter_match_the_reference():
     cam = camera()
     params = {k: v.requires_grad_() for k, v in random_gaussians(40).items()}
     fast = render_with(rasterize_features, params, cam)
-    ref = render_with(rasterize_features_ref, params, cam)
-    assert torch.allclose(fast[0], ref[0], atol=1e-10) and torch.allclose(fast[1], ref[1], atol=1e-10)
+    ref = render_with(rasterize_features_reference, params, cam)
+    assert torch.allclose(fast[0], ref[0], atol=1e-10) and torch.allclose(
+        fast[1], ref[1], atol=1e-10
+    )
     gen = torch.Generator().manual_seed(1)
     w_img = torch.randn(fast[0].shape, generator=gen, dtype=F64)
     w_T = torch.randn(fast[1].shape, generator=gen, dtype=F64)
     names = list(params)
-    g_fast = torch.autograd.grad((fast[0] * w_img).sum() + (fast[1] * w_T).sum(), list(params.values()))
-    g_ref = torch.autograd.grad((ref[0] * w_img).sum() + (ref[1] * w_T).sum(), list(params.values()))
+    g_fast = torch.autograd.grad(
+        (fast[0] * w_img).sum() + (fast[1] * w_T).sum(), list(params.values())
+    )
+    g_ref = torch.autograd.grad(
+        (ref[0] * w_img).sum() + (ref[1] * w_T).sum(), list(params.values())
+    )
     for name, a, b in zip(names, g_fast, g_ref):
         assert torch.isfinite(a).all() and b.abs().max() > 0, name
         assert torch.allclose(a, b, atol=1e-9 * max(1.0, b.abs().max().item()), rtol=0), name
@@ -59,16 +66,21 @@ def test_gradients_of_every_parameter_match_the_reference():
 def test_depth_channel_is_expected_z_and_acc_normalizes_it():
     """One large opaque splat straight ahead at camera z = 2: rgb = w c + T bg, depth / acc = 2."""
     cam = camera()
-    g = {"means": torch.tensor([[-0.1, 0.05, -1.0]], dtype=F64),  # camera z = 3 - 1 = 2
-         "quats": torch.tensor([[1.0, 0, 0, 0]], dtype=F64),
-         "log_scales": torch.full((1, 3), math.log(0.5), dtype=F64),
-         "opacity_logits": torch.tensor([4.0], dtype=F64),
-         "sh_dc": torch.zeros(1, 1, 3, dtype=F64), "sh_rest": torch.zeros(1, 0, 3, dtype=F64)}
+    g = {
+        "means": torch.tensor([[-0.1, 0.05, -1.0]], dtype=F64),  # camera z = 3 - 1 = 2
+        "quats": torch.tensor([[1.0, 0, 0, 0]], dtype=F64),
+        "log_scales": torch.full((1, 3), math.log(0.5), dtype=F64),
+        "opacity_logits": torch.tensor([4.0], dtype=F64),
+        "sh_dc": torch.zeros(1, 1, 3, dtype=F64),
+        "sh_rest": torch.zeros(1, 0, 3, dtype=F64),
+    }
     s = project_splats(g, cam, 0)
     out = composite_rgbd(s, torch.tensor([1.0, 0.0, 0.0], dtype=F64))
     acc = out["acc"]
     assert float(acc[16, 20]) > 0.9
     hit = acc > 0
     assert torch.allclose(out["depth"][hit] / acc[hit], torch.full_like(acc[hit], 2.0))
-    expected_rgb = 0.5 * acc[..., None] + (1 - acc)[..., None] * torch.tensor([1.0, 0, 0], dtype=F64)
+    expected_rgb = 0.5 * acc[..., None] + (1 - acc)[..., None] * torch.tensor(
+        [1.0, 0, 0], dtype=F64
+    )
     assert torch.allclose(out["rgb"], expected_rgb)

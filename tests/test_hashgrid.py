@@ -1,4 +1,4 @@
-"""Multiresolution hash encoding: seed Problem 4, the hash against big-int arithmetic, the
+"""Multiresolution hash encoding: the growth factor of Müller et al. 2022 (eq. 3), the hash against big-int arithmetic, the
 numba kernel against the pure-torch twin (values and gradients), exactness of trilinear
 interpolation, and points on faces, corners and the box corners."""
 
@@ -20,7 +20,24 @@ from recon.fields.hashgrid import (
 def test_seed_problem4_layout_and_parameter_count():
     assert growth_factor(16, 16, 2048) == pytest.approx(1.3819, abs=1e-4)
     lay = level_layout(16, 16, 2048, 2**19)
-    assert lay["resolution"] == [16, 22, 30, 42, 58, 80, 111, 153, 212, 294, 406, 561, 776, 1072, 1482, 2048]
+    assert lay["resolution"] == [
+        16,
+        22,
+        30,
+        42,
+        58,
+        80,
+        111,
+        153,
+        212,
+        294,
+        406,
+        561,
+        776,
+        1072,
+        1482,
+        2048,
+    ]
     assert lay["dense"] == [True] * 5 + [False] * 11  # 81^3 = 531441 > 2^19 at level 5
     assert lay["size"][:5] == [4913, 12167, 29791, 79507, 205379]
     assert sum(lay["size"]) == 6_098_925
@@ -32,13 +49,18 @@ def test_seed_problem4_layout_and_parameter_count():
 def test_spatial_hash_matches_python_big_ints():
     rng = random.Random(0)
     T = 2**19
-    verts = [[rng.randrange(0, 2**22) for _ in range(3)] for _ in range(2000)] + [[2**22, 2**22, 2**22]]
+    verts = [[rng.randrange(0, 2**22) for _ in range(3)] for _ in range(2000)] + [
+        [2**22, 2**22, 2**22]
+    ]
     got = spatial_hash(torch.tensor(verts), T).tolist()
     for (x, y, z), h in zip(verts, got):
         assert h == ((x * 1) ^ (y * 2654435761) ^ (z * 805459861)) % T
     # a table size that is not a power of two (the numba kernel uses a mask only for powers of 2)
     got = spatial_hash(torch.tensor(verts), 1000003).tolist()
-    assert all(h == ((x ^ (y * 2654435761) ^ (z * 805459861)) % 1000003) for (x, y, z), h in zip(verts, got))
+    assert all(
+        h == ((x ^ (y * 2654435761) ^ (z * 805459861)) % 1000003)
+        for (x, y, z), h in zip(verts, got)
+    )
 
 
 def slow_encode(x, table, lay, F):
@@ -59,7 +81,7 @@ def slow_encode(x, table, lay, F):
                     idx = v[0] + (n + 1) * v[1] + (n + 1) ** 2 * v[2]
                 else:
                     idx = ((v[0] * 1) ^ (v[1] * 2654435761) ^ (v[2] * 805459861)) % lay["size"][lv]
-                out[p, lv * F:(lv + 1) * F] += w * table[lay["offset"][lv] + idx]
+                out[p, lv * F : (lv + 1) * F] += w * table[lay["offset"][lv] + idx]
     return out
 
 
@@ -112,7 +134,7 @@ def test_trilinear_reproduces_linear_functions_on_dense_levels():
         g = torch.arange(n + 1, dtype=torch.float64)
         z, y, xx = torch.meshgrid(g, g, g, indexing="ij")  # dense index x fastest
         v = torch.stack([xx, y, z], -1).reshape(-1, 3) / n
-        table[lay["offset"][lv]:lay["offset"][lv] + (n + 1) ** 3, 0] = v @ a + 0.25
+        table[lay["offset"][lv] : lay["offset"][lv] + (n + 1) ** 3, 0] = v @ a + 0.25
     x = torch.cat([torch.rand(200, 3, dtype=torch.float64), special_points(lay)[:4]])
     expected = (x @ a + 0.25)[:, None].expand(-1, 3)
     torch.testing.assert_close(hash_encode(x, table, lay), expected)
@@ -134,7 +156,9 @@ def test_gradcheck_positions_and_table_float64():
     assert lay["dense"] == [True, False, False] or lay["dense"] == [True, True, False]
     table = torch.randn(sum(lay["size"]), 2, dtype=torch.float64, requires_grad=True)
     # keep points away from cell boundaries, where the encoding has a kink
-    x = (torch.tensor([[0.113, 0.527, 0.801], [0.61, 0.29, 0.07]], dtype=torch.float64)).requires_grad_()
+    x = (
+        torch.tensor([[0.113, 0.527, 0.801], [0.61, 0.29, 0.07]], dtype=torch.float64)
+    ).requires_grad_()
     assert torch.autograd.gradcheck(lambda p, t: hash_encode_torch(p, t, lay), (x, table))
     assert torch.autograd.gradcheck(lambda t: hash_encode(x.detach(), t, lay), (table,))
 

@@ -13,10 +13,30 @@ import torch
 
 from tests.conftest import REPO, recon_cli, sphere_workspace
 
-TRAIN = ["--method", "plenoxel", "--steps", "60", "--eval-views", "1", "--eval-every", "1000",
-         "--checkpoint-every", "0.5", "--set", "resolutions=16,32", "--set", "upsample_steps=30",
-         "--set", "rays_per_batch=1024", "--set", "occupancy_res=16", "--set", "samples_per_batch=32768",
-         "--threads", "1"]
+TRAIN = [
+    "--method",
+    "plenoxel",
+    "--steps",
+    "60",
+    "--eval-views",
+    "1",
+    "--eval-every",
+    "1000",
+    "--checkpoint-every",
+    "0.5",
+    "--set",
+    "resolutions=16,32",
+    "--set",
+    "upsample_steps=30",
+    "--set",
+    "rays_per_batch=1024",
+    "--set",
+    "occupancy_res=16",
+    "--set",
+    "samples_per_batch=32768",
+    "--threads",
+    "1",
+]
 
 
 @pytest.fixture(scope="module")
@@ -28,8 +48,14 @@ def ws(tmp_path_factory):
 
 def _start(ws, run):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "recon.cli", "train", "-w", str(ws), "--run", run, *TRAIN],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+    return subprocess.Popen(
+        [sys.executable, "-m", "recon.cli", "train", "-w", str(ws), "--run", run, *TRAIN],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=REPO,
+    )
 
 
 def _wait_for_checkpoint(ws, run, timeout=120):
@@ -69,7 +95,9 @@ def test_sigkill_then_resume_matches_uninterrupted(ws):
     proc.kill()
     proc.wait(30)
     ck_dir = ws / "runs" / "killed" / "checkpoints"
-    assert not [p for p in ck_dir.iterdir() if ".tmp-" in p.name]  # nothing half-written is left visible
+    assert not [
+        p for p in ck_dir.iterdir() if ".tmp-" in p.name
+    ]  # nothing half-written is left visible
     recon_cli("train", "-w", str(ws), "--run", "killed", "--resume", *TRAIN)
     _same_model(ws, "straight", "killed")
 

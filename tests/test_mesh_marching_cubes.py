@@ -56,12 +56,15 @@ def test_threshold_worked_example():
 
 def test_soft_field_threshold_worked_example():
     assert soft_field_threshold(150.0, np.array([4.0, 9.0, 40.0])) == 9.0  # softer than a voxel
-    assert soft_field_threshold(150.0, np.array([400.0, 900.0])) == 150.0  # sharper: the voxel level
+    assert (
+        soft_field_threshold(150.0, np.array([400.0, 900.0])) == 150.0
+    )  # sharper: the voxel level
     assert soft_field_threshold(150.0, np.array([np.nan])) == 150.0  # no rendered surface
 
 
 def test_soft_field_threshold_meshes_a_blurry_sphere():
     """A sphere blurred over ~10 voxels never reaches ln 2 / h; the level at the surface does."""
+
     def blurry(p):
         return 20.0 * torch.sigmoid((0.6 - p.norm(dim=-1)) / 0.05)
 

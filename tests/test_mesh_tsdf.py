@@ -4,6 +4,7 @@ import torch
 
 from recon.cameras import Cameras, camera_rays
 from recon.cameras.cameras import intrinsics_matrix
+from recon.cameras.look_at import look_at
 from recon.mesh.marching_cubes import grid_slabs
 from recon.mesh.tsdf import (
     TSDFConfig,
@@ -20,18 +21,6 @@ RADIUS = 0.5
 AABB = np.array([[-0.8, -0.8, -0.8], [0.9, 0.8, 0.85]])
 
 
-def _look_at(eye: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """OpenCV cam_from_world (4, 4): z toward the target, y down (world z is up)."""
-    z = (target - eye) / (target - eye).norm()
-    x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=eye.dtype))
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    out = torch.eye(4, dtype=eye.dtype)
-    out[:3, :3], out[:3, 3] = R, -R @ eye
-    return out
-
-
 def _cube_corner_cameras(size: int = 96, distance: float = 2.2) -> Cameras:
     corners = torch.tensor(
         [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64
@@ -41,7 +30,10 @@ def _cube_corner_cameras(size: int = 96, distance: float = 2.2) -> Cameras:
     c = torch.full((8,), size / 2, dtype=torch.float64)
     n = torch.full((8,), size, dtype=torch.int64)
     return Cameras(
-        intrinsics_matrix(f, f, c, c), torch.stack([_look_at(e, CENTER) for e in eyes]), n, n
+        intrinsics_matrix(f, f, c, c),
+        torch.stack([look_at(e, CENTER, torch.tensor([0.0, 0.0, 1.0])) for e in eyes]),
+        n,
+        n,
     )
 
 
@@ -61,7 +53,7 @@ def _render_sphere(cameras: Cameras, background: float) -> tuple[torch.Tensor, t
     return torch.stack(depths), torch.stack(rgbs)
 
 
-def _project_tsdf_slow(points, cameras, depths, rgbs, trunc):
+def _project_tsdf_reference(points, cameras, depths, rgbs, trunc):
     """One view at a time with explicit pinhole arithmetic: the twin of `project_tsdf`."""
     n = len(points)
     s_t, s_w, s_v = (torch.zeros(n, dtype=points.dtype) for _ in range(3))
@@ -96,7 +88,7 @@ def test_project_tsdf_matches_slow_twin():
     points = CENTER + 0.7 * (2 * torch.rand(400, 3, generator=g, dtype=torch.float64) - 1)
     points = torch.cat([points, cameras.centers])  # z = 0, u = v = NaN: must not count
     fast = project_tsdf(points, cameras, depths, rgbs, truncation=0.1)
-    slow = _project_tsdf_slow(points, cameras, depths, rgbs, 0.1)
+    slow = _project_tsdf_reference(points, cameras, depths, rgbs, 0.1)
     for a, b in zip(fast, slow):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     assert slow[1].sum() > 100 and slow[3].sum() > 10  # the comparison saw real observations

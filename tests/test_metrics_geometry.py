@@ -101,13 +101,19 @@ def test_observed_by_depth_worked_example():
     K = np.array([[[10.0, 0, 5], [0, 10, 5], [0, 0, 1]]])
     depth = [np.full((10, 10), 2.0)]
     depth[0][:, 8:] = 0.0  # no surface in the last two columns
-    points = np.array([[0, 0, 2.0],  # on the wall: seen
-                       [0, 0, 3.0],  # behind the wall: occluded
-                       [0, 0, -1.0],  # behind the camera
-                       [100, 0, 2.0],  # outside the image
-                       [0.35, 0, 2.0]])  # pixel column 6.75 -> 6: seen; 0.65 -> column 8: no depth
+    points = np.array(
+        [
+            [0, 0, 2.0],  # on the wall: seen
+            [0, 0, 3.0],  # behind the wall: occluded
+            [0, 0, -1.0],  # behind the camera
+            [100, 0, 2.0],  # outside the image
+            [0.35, 0, 2.0],
+        ]
+    )  # pixel column 6.75 -> 6: seen; 0.65 -> column 8: no depth
     expected = [True, False, False, False, True]
-    np.testing.assert_array_equal(observed_by_depth(points, np.eye(4)[None], K, depth, tol=0.1), expected)
+    np.testing.assert_array_equal(
+        observed_by_depth(points, np.eye(4)[None], K, depth, tol=0.1), expected
+    )
     assert not observed_by_depth(np.array([[0.65, 0, 2.0]]), np.eye(4)[None], K, depth, tol=0.1)[0]
     # the same in units twice as small: a similarity x_cam = 2 x (depths stay in camera units)
     half = np.diag([2.0, 2.0, 2.0, 1.0])[None]

@@ -99,7 +99,9 @@ def test_masked_psnr_with_a_full_mask_is_psnr():
     from recon.metrics.image import psnr_masked
 
     a, b = _image(1), _image(2)
-    assert psnr_masked(a, b, torch.ones(32, 40, dtype=torch.bool)).item() == pytest.approx(psnr(a, b).item())
+    assert psnr_masked(a, b, torch.ones(32, 40, dtype=torch.bool)).item() == pytest.approx(
+        psnr(a, b).item()
+    )
 
 
 def test_masked_psnr_counts_only_the_mask():

@@ -9,7 +9,9 @@ from recon.models.base import TrainData
 
 def _data(h=8, w=12):
     K = intrinsics_matrix(*(torch.tensor([v]) for v in (10.0, 11.0, 6.0, 4.0)))
-    cams = Cameras(K.repeat(2, 1, 1), torch.eye(4).repeat(2, 1, 1), torch.tensor([w, w]), torch.tensor([h, h]))
+    cams = Cameras(
+        K.repeat(2, 1, 1), torch.eye(4).repeat(2, 1, 1), torch.tensor([w, w]), torch.tensor([h, h])
+    )
     return TrainData(torch.rand(2, h, w, 3), cams)
 
 
@@ -27,4 +29,6 @@ def test_downsampled_is_the_block_mean_with_exact_intrinsics_and_is_cached():
 def test_downsampled_rays_match_the_level():
     half = _data().downsampled(4)
     rays = half.rays()
-    assert rays["origins"].shape == (2 * 2 * 3, 3) and torch.equal(rays["rgb"], half.images.reshape(-1, 3))
+    assert rays["origins"].shape == (2 * 2 * 3, 3) and torch.equal(
+        rays["rgb"], half.images.reshape(-1, 3)
+    )

@@ -15,9 +15,21 @@ from recon.models.raymarch import mlp_dtype, ray_bounds
 from recon.volrend import scene_to_unit_cube, volume_render
 from recon.volrend.occupancy import cell_points
 
-SMALL = NeRFConfig(depth=3, width=64, skip_layer=2, pos_bands=4, n_coarse=16, n_fine=16,
-                   rays_per_batch=256, lr=5e-3, lr_final=5e-4, lr_decay_steps=150, chunk=1024,
-                   occupancy_res=64, occupancy_warmup=64)  # the sphere test trains 86 steps with skipping
+SMALL = NeRFConfig(
+    depth=3,
+    width=64,
+    skip_layer=2,
+    pos_bands=4,
+    n_coarse=16,
+    n_fine=16,
+    rays_per_batch=256,
+    lr=5e-3,
+    lr_final=5e-4,
+    lr_decay_steps=150,
+    chunk=1024,
+    occupancy_res=64,
+    occupancy_warmup=64,
+)  # the sphere test trains 86 steps with skipping
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -26,7 +38,13 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def test_paper_preset_is_the_paper_architecture():
     assert METHODS["nerf"].config_cls is NeRFConfig and set(PRESETS) == {"fast", "paper"}
     cfg = NeRFConfig(**PRESETS["paper"])
-    assert (cfg.n_coarse, cfg.n_fine, cfg.rays_per_batch, cfg.pos_bands, cfg.dir_bands) == (64, 128, 4096, 10, 4)
+    assert (cfg.n_coarse, cfg.n_fine, cfg.rays_per_batch, cfg.pos_bands, cfg.dir_bands) == (
+        64,
+        128,
+        4096,
+        10,
+        4,
+    )
     net = NeRFMLP(cfg)
     assert len(net.layers) == 8 and all(layer.out_features == 256 for layer in net.layers)
     ins = [layer.in_features for layer in net.layers]
@@ -70,8 +88,12 @@ def test_bf16_mlp_renders_like_fp32_and_trains():
     give finite fp32 gradients."""
     data, info, _ = sphere_scene(n_cams=2, size=12)
     torch.manual_seed(0)
-    exact = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "precision": "fp32", "occupancy_res": 0}), info)
-    half = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "precision": "bf16", "occupancy_res": 0}), info)
+    exact = NeRFModel(
+        NeRFConfig(**{**SMALL.__dict__, "precision": "fp32", "occupancy_res": 0}), info
+    )
+    half = NeRFModel(
+        NeRFConfig(**{**SMALL.__dict__, "precision": "bf16", "occupancy_res": 0}), info
+    )
     half.load_state_dict(exact.state_dict())
     a, b = exact.render(data.cameras[0]), half.render(data.cameras[0])
     assert b["rgb"].dtype == torch.float32 and (a["rgb"] - b["rgb"]).abs().max() < 0.03
@@ -96,12 +118,19 @@ def test_mlps_see_ray_counts_in_buckets_and_padding_changes_nothing():
     out = model._render_net(model.fine, o, d, t0, t1)
     assert seen == [(RAY_BUCKET * 8, RAY_BUCKET)]
     x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]
-    sigma, rgb = forward(model.encode_points(x.reshape(-1, 3)), positional_encoding(d, SMALL.dir_bands))
-    twin = volume_render(sigma.view(37, 8), rgb.view(37, 8, 3), t0, t1, background=model.background).rgb
+    sigma, rgb = forward(
+        model.encode_points(x.reshape(-1, 3)), positional_encoding(d, SMALL.dir_bands)
+    )
+    twin = volume_render(
+        sigma.view(37, 8), rgb.view(37, 8, 3), t0, t1, background=model.background
+    ).rgb
     torch.testing.assert_close(out.rgb, twin)
     params = list(model.fine.parameters())
-    for g_padded, g_twin in zip(torch.autograd.grad(out.rgb.sum(), params),
-                                torch.autograd.grad(twin.sum(), params), strict=True):
+    for g_padded, g_twin in zip(
+        torch.autograd.grad(out.rgb.sum(), params),
+        torch.autograd.grad(twin.sum(), params),
+        strict=True,
+    ):
         torch.testing.assert_close(g_padded, g_twin)
 
 
@@ -116,7 +145,11 @@ def test_learns_sphere_and_renders():
     assert stats["loss"] < 0.2 * first["loss"]
     model.eval()
     out = model.render(data.cameras[0])
-    assert out["rgb"].shape == (24, 24, 3) and out["depth"].shape == (24, 24) and out["acc"].shape == (24, 24)
+    assert (
+        out["rgb"].shape == (24, 24, 3)
+        and out["depth"].shape == (24, 24)
+        and out["acc"].shape == (24, 24)
+    )
     assert all(torch.isfinite(v).all() for v in out.values())
     assert eval_psnr(model, data) > baseline + 8
     hit = depths[0] > 0
@@ -130,8 +163,10 @@ def test_fine_samples_concentrate_where_coarse_weight_is():
     o = torch.tensor([[0.0, 0.0, -3.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]])
     # a coarse network whose density is a thin slab at t = 2.5 (z = -0.5): patch its geometry
-    model.coarse.geometry = lambda x_enc: (30.0 * ((x_enc[:, 2] + 0.5).abs() < 0.05).float(),
-                                           torch.zeros(x_enc.shape[0], SMALL.width))
+    model.coarse.geometry = lambda x_enc: (
+        30.0 * ((x_enc[:, 2] + 0.5).abs() < 0.05).float(),
+        torch.zeros(x_enc.shape[0], SMALL.width),
+    )
     model.cfg = NeRFConfig(**{**SMALL.__dict__, "n_coarse": 64, "n_fine": 64})
     seen = {}
     original = model._render_net
@@ -169,8 +204,13 @@ def test_unbounded_scene_and_misses():
     assert losses[-1] < losses[0]
     out = model.render(data.cameras[0])
     assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["depth"]).all()
-    away = SceneInfo(aabb=torch.tensor([[50.0] * 3, [51.0] * 3]), unbounded=False, background=info.background,
-                     near=0.1, far=6.0)
+    away = SceneInfo(
+        aabb=torch.tensor([[50.0] * 3, [51.0] * 3]),
+        unbounded=False,
+        background=info.background,
+        near=0.1,
+        far=6.0,
+    )
     model = NeRFModel(SMALL, away)
     assert torch.isfinite(torch.tensor(model.train_step(data, 0)["loss"]))
     out = model.render(data.cameras[0])
@@ -192,7 +232,11 @@ def test_occupancy_shrinks_ranges_to_occupied_cells_and_skips_empty_rays():
     disc = b**2 - ((o * o).sum(-1) - 0.5**2)
     enter, exit_ = -b - disc.clamp_min(0).sqrt(), -b + disc.clamp_min(0).sqrt()
     inner = disc > 0.05  # clearly through the radius-0.5 ball: its whole chord lies in the range
-    assert inner.sum() > 20 and (t_min[inner] <= enter[inner]).all() and (t_max[inner] >= exit_[inner]).all()
+    assert (
+        inner.sum() > 20
+        and (t_min[inner] <= enter[inner]).all()
+        and (t_max[inner] >= exit_[inner]).all()
+    )
     far_off = b**2 - ((o * o).sum(-1) - 0.6**2) < 0  # misses the ball grown by 3 cells: no range
     assert far_off.sum() > 20 and (t_max[far_off] == t_min[far_off]).all()
     box_min, box_max = ray_bounds(info, o, d)
@@ -202,7 +246,9 @@ def test_occupancy_shrinks_ranges_to_occupied_cells_and_skips_empty_rays():
     model._render_net = lambda net, *a: seen.append(a[0].shape[0]) or original(net, *a)
     out = model.render(data.cameras[0])
     assert seen and sum(seen) == 2 * int((t_max > t_min).sum())  # coarse + fine, hit rays only
-    torch.testing.assert_close(out["rgb"].reshape(-1, 3)[far_off], info.background.expand(int(far_off.sum()), 3))
+    torch.testing.assert_close(
+        out["rgb"].reshape(-1, 3)[far_off], info.background.expand(int(far_off.sum()), 3)
+    )
     assert (out["acc"].reshape(-1)[far_off] == 0).all()
 
 
@@ -212,7 +258,9 @@ def test_a_model_saved_without_occupancy_grid_loads_and_renders_the_same():
     new = NeRFModel(SMALL, info)
     new.load_state_dict(old.state_dict())
     assert new.occupancy is None
-    torch.testing.assert_close(new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"])
+    torch.testing.assert_close(
+        new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"]
+    )
 
 
 def test_unbounded_scene_seeds_from_points_and_missed_rays_see_the_learned_background():

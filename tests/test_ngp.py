@@ -9,6 +9,7 @@ import torch
 
 from recon.cameras import Cameras
 from recon.cameras.cameras import intrinsics_matrix
+from recon.cameras.look_at import look_at
 from recon.cameras.rays import camera_rays
 from recon.models.base import METHODS, SceneInfo, TrainData
 from recon.models.ngp import PRESETS, NGPConfig, NGPModel, uses_distortion
@@ -16,26 +17,27 @@ from recon.models.ngp import PRESETS, NGPConfig, NGPModel, uses_distortion
 RADIUS = 0.5
 
 
-def look_at(eye: torch.Tensor) -> torch.Tensor:
+def look_at_origin(eye: torch.Tensor) -> torch.Tensor:
     """OpenCV cam_from_world of a camera at eye looking at the origin, world z up."""
-    z = -eye / eye.norm()
-    x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0]))
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    T = torch.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ eye
-    return T
+    return look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
 
 
 def ring_cameras(n: int, size: int, radius: float = 2.5, elevation: float = 0.4) -> Cameras:
-    eyes = [radius * torch.tensor([math.cos(elevation) * math.cos(a), math.cos(elevation) * math.sin(a),
-                                   math.sin(elevation) * (1 if i % 2 else -1)])
-            for i, a in enumerate(torch.arange(n) * 2 * math.pi / n)]
+    eyes = [
+        radius
+        * torch.tensor(
+            [
+                math.cos(elevation) * math.cos(a),
+                math.cos(elevation) * math.sin(a),
+                math.sin(elevation) * (1 if i % 2 else -1),
+            ]
+        )
+        for i, a in enumerate(torch.arange(n) * 2 * math.pi / n)
+    ]
     f = torch.full((n,), 1.2 * size)
     K = intrinsics_matrix(f, f, torch.full((n,), size / 2), torch.full((n,), size / 2))
     wh = torch.full((n,), size, dtype=torch.int64)
-    return Cameras(K, torch.stack([look_at(e) for e in eyes]), wh, wh)
+    return Cameras(K, torch.stack([look_at_origin(e) for e in eyes]), wh, wh)
 
 
 def sphere_images(cameras: Cameras, background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -57,8 +59,13 @@ def sphere_scene(n_cams: int = 8, size: int = 32):
     bg = torch.tensor([1.0, 1.0, 1.0])
     cams = ring_cameras(n_cams, size)
     imgs, depths = sphere_images(cams, bg)
-    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=False, background=bg,
-                     near=0.1, far=6.0)
+    info = SceneInfo(
+        aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]),
+        unbounded=False,
+        background=bg,
+        near=0.1,
+        far=6.0,
+    )
     return TrainData(imgs, cams), info, depths
 
 
@@ -68,12 +75,26 @@ def mean_colour_psnr(images: torch.Tensor) -> float:
 
 
 def eval_psnr(model, data: TrainData) -> float:
-    mses = [((model.render(data.cameras[i])["rgb"] - data.images[i]) ** 2).mean().item() for i in range(len(data))]
+    mses = [
+        ((model.render(data.cameras[i])["rgb"] - data.images[i]) ** 2).mean().item()
+        for i in range(len(data))
+    ]
     return -10 * math.log10(sum(mses) / len(mses))
 
 
-SMALL = NGPConfig(log2_table_size=14, n_max=128, n_levels=8, rays_per_batch=256, samples_per_batch=0, march_steps=96,
-                  occupancy_res=32, occupancy_warmup=16, occupancy_decay=0.6, lr_decay_steps=150, chunk=2048)
+SMALL = NGPConfig(
+    log2_table_size=14,
+    n_max=128,
+    n_levels=8,
+    rays_per_batch=256,
+    samples_per_batch=0,
+    march_steps=96,
+    occupancy_res=32,
+    occupancy_warmup=16,
+    occupancy_decay=0.6,
+    lr_decay_steps=150,
+    chunk=2048,
+)
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -83,7 +104,13 @@ def test_registered_with_presets():
     spec = METHODS["ngp"]
     assert spec.config_cls is NGPConfig and set(PRESETS) == {"fast", "paper"}
     paper = NGPConfig(**PRESETS["paper"])
-    assert (paper.n_levels, paper.n_features, paper.log2_table_size, paper.n_min, paper.n_max) == (16, 2, 19, 16, 2048)
+    assert (paper.n_levels, paper.n_features, paper.log2_table_size, paper.n_min, paper.n_max) == (
+        16,
+        2,
+        19,
+        16,
+        2048,
+    )
 
 
 def test_learns_sphere_and_renders():
@@ -99,7 +126,11 @@ def test_learns_sphere_and_renders():
     assert 0 < stats["occupied"] < 0.4 and stats["samples_per_ray"] < 0.5 * first["samples_per_ray"]
     model.eval()
     out = model.render(data.cameras[0])
-    assert out["rgb"].shape == (24, 24, 3) and out["depth"].shape == (24, 24) and out["acc"].shape == (24, 24)
+    assert (
+        out["rgb"].shape == (24, 24, 3)
+        and out["depth"].shape == (24, 24)
+        and out["acc"].shape == (24, 24)
+    )
     assert all(torch.isfinite(v).all() for v in out.values())
     test_psnr = eval_psnr(model, data)
     assert test_psnr > baseline + 8, (test_psnr, baseline)
@@ -131,8 +162,13 @@ def test_resume_is_exact():
 def test_misses_and_empty_batches_are_safe():
     data, info, _ = sphere_scene(n_cams=2, size=8)
     # rays that all miss the box: put the box far away
-    far_info = SceneInfo(aabb=torch.tensor([[50.0] * 3, [51.0] * 3]), unbounded=False,
-                         background=info.background, near=0.1, far=6.0)
+    far_info = SceneInfo(
+        aabb=torch.tensor([[50.0] * 3, [51.0] * 3]),
+        unbounded=False,
+        background=info.background,
+        near=0.1,
+        far=6.0,
+    )
     model = NGPModel(SMALL, far_info)
     stats = model.train_step(data, 0)
     assert math.isfinite(stats["loss"]) and stats["samples_per_ray"] == 0
@@ -161,7 +197,9 @@ def test_trunc_exp_value_and_clamped_gradient():
     y.sum().backward()
     expected = torch.exp(torch.tensor([-3.0, 0.0, 2.0, 15.0, 15.0], dtype=torch.float64))
     torch.testing.assert_close(x.grad, expected)  # d/dx exp(x) below 15, exp(15) above
-    assert torch.autograd.gradcheck(trunc_exp, (torch.tensor([-1.0, 0.5, 3.0], dtype=torch.float64, requires_grad=True),))
+    assert torch.autograd.gradcheck(
+        trunc_exp, (torch.tensor([-1.0, 0.5, 3.0], dtype=torch.float64, requires_grad=True),)
+    )
 
 
 def sky(directions: torch.Tensor) -> torch.Tensor:
@@ -178,23 +216,42 @@ def unbounded_sphere_scene(n_cams: int = 6, size: int = 16, n_points: int = 300)
         _, d, _ = camera_rays(cams, i)
         miss = (imgs[i] == 0).all(-1)
         imgs[i][miss] = sky(d[miss]).float()
-    pts = torch.nn.functional.normalize(torch.randn(n_points, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
-    info = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=True, background=torch.ones(3),
-                     near=0.1, far=100.0, points=RADIUS * pts)
+    pts = torch.nn.functional.normalize(
+        torch.randn(n_points, 3, generator=torch.Generator().manual_seed(0)), dim=-1
+    )
+    info = SceneInfo(
+        aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]),
+        unbounded=True,
+        background=torch.ones(3),
+        near=0.1,
+        far=100.0,
+        points=RADIUS * pts,
+    )
     return TrainData(imgs, cams), info
 
 
 def test_unbounded_first_step_is_capped_and_seeded_from_points():
     data, info = unbounded_sphere_scene()
-    cfg = NGPConfig(**{**SMALL.__dict__, "max_samples_per_ray": 40, "cone_angle": 1 / 64, "occupancy_seed_dilation": 1})
+    cfg = NGPConfig(
+        **{
+            **SMALL.__dict__,
+            "max_samples_per_ray": 40,
+            "cone_angle": 1 / 64,
+            "occupancy_seed_dilation": 1,
+        }
+    )
     model = NGPModel(cfg, info)
     grid = model.occupancy
     assert grid.is_occupied(model.to_unit(info.points)).all()  # every point's cell
     assert 0 < grid.occupancy_fraction() < 0.1  # and a thin shell around them, not the whole cube
-    assert not grid.is_occupied(model.to_unit(torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]))).any()
+    assert not grid.is_occupied(
+        model.to_unit(torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]))
+    ).any()
     # points outside the box (the sparse far tail) seed nothing: one far cell spans a vast region
     far = torch.tensor([[40.0, 0.0, 0.0], [0.0, -9.0, 3.0]])
-    with_far = NGPModel(cfg, SceneInfo(**{**info.__dict__, "points": torch.cat([info.points, far])}))
+    with_far = NGPModel(
+        cfg, SceneInfo(**{**info.__dict__, "points": torch.cat([info.points, far])})
+    )
     assert torch.equal(with_far.occupancy.occupied, grid.occupied)
     stats = model.train_step(data, 0)
     assert 0 < stats["samples_per_ray"] <= 40
@@ -223,7 +280,7 @@ def test_learned_background_fills_what_the_volume_leaves_open():
     model.eval()
     out = model.render(data.cameras[0])
     _, d, _ = camera_rays(data.cameras, 0)
-    sky_px = ((data.images[0] - sky(d)).abs().max(-1).values < 1e-6)
+    sky_px = (data.images[0] - sky(d)).abs().max(-1).values < 1e-6
     assert sky_px.sum() > 30
     err = (out["rgb"][sky_px] - data.images[0][sky_px]).abs().mean()
     white = (info.background - data.images[0][sky_px]).abs().mean()
@@ -247,7 +304,9 @@ def test_a_run_saved_without_learned_background_loads_with_the_scene_colour():
     new = NGPModel(SMALL, info)
     new.load_state_dict(old.state_dict())
     assert new.environment is None
-    torch.testing.assert_close(new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"])
+    torch.testing.assert_close(
+        new.render(data.cameras[0])["rgb"], old.render(data.cameras[0])["rgb"]
+    )
 
 
 def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients():
@@ -301,7 +360,9 @@ def test_distortion_is_on_by_default_for_unbounded_scenes_only():
 
 def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     data, info = unbounded_sphere_scene(n_cams=2, size=12)
-    model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion_weight": 0.1}), info)
+    model = NGPModel(
+        NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion_weight": 0.1}), info
+    )
     t = torch.tensor([info.near, 1.0, 3.0, 30.0, info.far])
     s = model.normalized_distance(t)
     torch.testing.assert_close(s[[0, -1]], torch.tensor([0.0, 1.0]))
@@ -309,6 +370,9 @@ def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     stats = model.train_step(data, 0)
     mse = 10 ** (-stats["psnr"] / 10)
     assert stats["loss"] > mse * (1 + 1e-4)  # the distortion term is part of the loss
-    plain = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion": "off"}),
-                     info).train_step(data, 0)
-    torch.testing.assert_close(torch.tensor(plain["loss"]), torch.tensor(10 ** (-plain["psnr"] / 10)))
+    plain = NGPModel(
+        NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion": "off"}), info
+    ).train_step(data, 0)
+    torch.testing.assert_close(
+        torch.tensor(plain["loss"]), torch.tensor(10 ** (-plain["psnr"] / 10))
+    )

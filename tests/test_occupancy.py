@@ -76,7 +76,10 @@ def test_disparity_warp_inverts_is_smooth_and_reaches_infinity_in_one_over_c_ste
     # ds/dt is continuous: 1/step below t_sw, 1/(c t) between, t_d/(c t^2) beyond
     for knot in (step / c, t_d):
         h = 1e-7
-        lo, hi = torch.tensor([knot - h, knot], dtype=torch.float64), torch.tensor([knot, knot + h], dtype=torch.float64)
+        lo, hi = (
+            torch.tensor([knot - h, knot], dtype=torch.float64),
+            torch.tensor([knot, knot + h], dtype=torch.float64),
+        )
         slopes = (_warp(hi, step, c, t_d) - _warp(lo, step, c, t_d)) / h
         torch.testing.assert_close(slopes[0], slopes[1], rtol=1e-5, atol=0)
     s_d = _warp(torch.tensor([t_d], dtype=torch.float64), step, c, t_d)
@@ -121,7 +124,10 @@ def test_grid_marks_the_sphere():
     sphere_frac = 4 / 3 * math.pi * RADIUS**3 / 8
     assert sphere_frac < frac < 4 * sphere_frac
     inside = scene_to_unit_cube(CENTRE[None], AABB, False)
-    assert grid.is_occupied(inside).item() and not grid.is_occupied(torch.tensor([[0.02, 0.02, 0.02]])).item()
+    assert (
+        grid.is_occupied(inside).item()
+        and not grid.is_occupied(torch.tensor([[0.02, 0.02, 0.02]])).item()
+    )
 
 
 def test_skipping_renders_like_dense_sampling():
@@ -135,7 +141,7 @@ def test_skipping_renders_like_dense_sampling():
     x = o[dri] + (0.5 * (t0 + t1))[:, None] * d[dri]
     dense = volume_render(cube_density(x), sphere_colour(x), t0, t1, dri, R, background=bg)
     to_unit = lambda p: scene_to_unit_cube(p, AABB, False)
-    ri, s, e = grid.sample(o, d, t_min, t_max, to_unit, step)
+    ri, s, e = grid.march_torch(o, d, t_min, t_max, to_unit, step)
     xm = o[ri] + (0.5 * (s + e))[:, None] * d[ri]
     sig = cube_density(xm)
     keep = terminated_mask(sig, s, e, ri, eps=1e-4)
@@ -172,7 +178,9 @@ def test_march_dispatch_equals_sample_and_spans_hold_every_occupied_sample():
     o, d = rays()
     t_min, t_max, _ = ray_aabb_intersect(o, d, AABB)
     u = torch.rand(o.shape[0], generator=torch.Generator().manual_seed(1))
-    ref = grid.sample(o, d, t_min, t_max, lambda p: scene_to_unit_cube(p, AABB, False), step, 0.0, u)
+    ref = grid.march_torch(
+        o, d, t_min, t_max, lambda p: scene_to_unit_cube(p, AABB, False), step, 0.0, u
+    )
     ri, s, e = grid.march(o, d, t_min, t_max, AABB, False, step, 0.0, u)
     assert torch.equal(ri, ref[0]) and torch.allclose(s, ref[1]) and torch.allclose(e, ref[2])
     lo, hi = ray_spans(ri, s, e, o.shape[0])
@@ -185,11 +193,20 @@ def test_march_dispatch_equals_sample_and_spans_hold_every_occupied_sample():
 def test_first_per_ray_worked_example():
     ri = torch.tensor([0, 0, 0, 2, 2, 3])
     assert first_per_ray(ri, 2).tolist() == [True, True, False, True, True, True]
-    assert first_per_ray(ri, 0).all() and first_per_ray(ri, 1).tolist() == [True, False, False, True, False, True]
+    assert first_per_ray(ri, 0).all() and first_per_ray(ri, 1).tolist() == [
+        True,
+        False,
+        False,
+        True,
+        False,
+        True,
+    ]
 
 
 def test_dilated_cells_worked_example_and_edges():
-    centre = cell_points(torch.tensor([1 + 4 * (1 + 4 * 1)]), 4, torch.full((1, 3), 0.5))  # cell (1, 1, 1)
+    centre = cell_points(
+        torch.tensor([1 + 4 * (1 + 4 * 1)]), 4, torch.full((1, 3), 0.5)
+    )  # cell (1, 1, 1)
     mask = dilated_cells(centre, 4, 1)
     ijk = torch.stack(torch.meshgrid(*[torch.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
     flat = ijk[:, 0] + 4 * (ijk[:, 1] + 4 * ijk[:, 2])
@@ -212,6 +229,10 @@ def test_seeded_grid_keeps_its_seed_through_warm_up_then_follows_the_density():
     grid.update(lambda u: sphere_density(u * 2 - 1), step, warmup=True, generator=g)
     assert grid.occupied.sum() == 27  # warm-up evaluates every cell but keeps the seed
     for _ in range(4):
-        grid.update(lambda u: sphere_density(u * 2 - 1), step, warmup=False, fraction=1.0, generator=g)
+        grid.update(
+            lambda u: sphere_density(u * 2 - 1), step, warmup=False, fraction=1.0, generator=g
+        )
     sphere_frac = 4 / 3 * math.pi * RADIUS**3 / 8
-    assert sphere_frac < grid.occupancy_fraction() < 4 * sphere_frac  # the whole sphere, not the seed
+    assert (
+        sphere_frac < grid.occupancy_fraction() < 4 * sphere_frac
+    )  # the whole sphere, not the seed

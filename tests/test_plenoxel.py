@@ -17,10 +17,15 @@ def test_trilinear_weights_sum_to_one_and_interpolate_linear_fields():
     flat = torch.arange(res**3)
     ijk = torch.stack([flat % res, (flat // res) % res, flat // res**2], -1).double() / (res - 1)
     f = ijk @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
-    assert torch.allclose((f[idx] * w).sum(-1), x @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64))
+    assert torch.allclose(
+        (f[idx] * w).sum(-1), x @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    )
     # exactly on the far faces and corners
     corner = torch.ones(1, 3, dtype=torch.float64)
-    assert torch.allclose((f[trilinear_corners(corner, res)[0]] * trilinear_corners(corner, res)[1]).sum(), torch.tensor(-0.5, dtype=torch.float64))
+    assert torch.allclose(
+        (f[trilinear_corners(corner, res)[0]] * trilinear_corners(corner, res)[1]).sum(),
+        torch.tensor(-0.5, dtype=torch.float64),
+    )
 
 
 def test_grid_prune_and_upsample_preserve_the_field():
@@ -45,9 +50,15 @@ def test_grid_prune_and_upsample_preserve_the_field():
 def test_plenoxel_learns_a_sphere():
     torch.manual_seed(0)
     data, info = sphere_scene()
-    cfg = PlenoxelConfig(resolutions=(16, 32), upsample_steps=(60,), rays_per_batch=1024, lr_decay_steps=1000,
-                         samples_per_batch=1 << 15,
-                         occupancy_res=16, chunk=4096)
+    cfg = PlenoxelConfig(
+        resolutions=(16, 32),
+        upsample_steps=(60,),
+        rays_per_batch=1024,
+        lr_decay_steps=1000,
+        samples_per_batch=1 << 15,
+        occupancy_res=16,
+        chunk=4096,
+    )
     model = PlenoxelModel(cfg, info)
     baseline = 10 * math.log10(1 / data.images.var(dim=(0, 1, 2)).mean().item())
     losses = [model.train_step(data, s)["loss"] for s in range(120)]
@@ -71,13 +82,20 @@ def test_numba_query_matches_torch_twin_values_and_gradients():
         for p in grid.data.values():
             p.normal_()
     grid.prune(torch.rand(grid.num_rows) > 0.3)  # some vertices pruned: they count as zero
-    x = torch.cat([torch.rand(300, 3), torch.tensor([[0.0, 0, 0], [1, 1, 1], [0.5, 1.0, 0.0], [1.2, -0.1, 0.5]])])
+    x = torch.cat(
+        [
+            torch.rand(300, 3),
+            torch.tensor([[0.0, 0, 0], [1, 1, 1], [0.5, 1.0, 0.0], [1.2, -0.1, 0.5]]),
+        ]
+    )
     fast = grid.query(x)
     ref = grid.query_reference(x)
     for name in grid.data:
         assert torch.allclose(fast[name], ref[name], atol=1e-6)
     g = {n: torch.randn_like(v) for n, v in fast.items()}
-    grads_fast = torch.autograd.grad([(fast[n] * g[n]).sum() for n in fast], list(grid.data.values()))
+    grads_fast = torch.autograd.grad(
+        [(fast[n] * g[n]).sum() for n in fast], list(grid.data.values())
+    )
     ref = grid.query_reference(x)
     grads_ref = torch.autograd.grad([(ref[n] * g[n]).sum() for n in ref], list(grid.data.values()))
     for a, b in zip(grads_fast, grads_ref):

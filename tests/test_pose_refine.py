@@ -18,10 +18,10 @@ from recon.cameras.pose_refine import (
     pivot_depths,
 )
 from recon.cameras.se3 import se3_exp, se3_log, so3_exp
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgbd, project_splats
 from recon.metrics.pose import rotation_angle_deg
 from recon.models.base import TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
 from recon.workspace import Workspace
 from recon.workspace.scene import load_scene, load_train_data
 from tests.conftest import SAMPLE_DATA, recon_cli
@@ -80,8 +80,9 @@ def test_pivot_depths():
     cfw = torch.eye(4, dtype=F64).repeat(2, 1, 1)
     cfw[1, 2, 3] = -5.0  # the second camera has the centre behind it
     cams = Cameras(torch.eye(3).repeat(2, 1, 1), cfw, torch.tensor([4, 4]), torch.tensor([4, 4]))
-    assert torch.equal(pivot_depths(cams, torch.tensor([0.0, 0.0, 3.0])),
-                       torch.tensor([3.0, 0.0], dtype=F64))
+    assert torch.equal(
+        pivot_depths(cams, torch.tensor([0.0, 0.0, 3.0])), torch.tensor([3.0, 0.0], dtype=F64)
+    )
 
 
 def ring_module(n=12, seed=0):
@@ -113,8 +114,11 @@ def test_remove_gauge_drops_world_motions_and_shared_twists_only():
     module.remove_gauge()
     left = module.twists.detach().double()
     # what is left is the single camera's correction minus its own small gauge share
-    assert torch.allclose(left, own - own.reshape(-1).matmul(module.gauge).matmul(module.gauge.T)
-                          .reshape(12, 6), atol=1e-7)
+    assert torch.allclose(
+        left,
+        own - own.reshape(-1).matmul(module.gauge).matmul(module.gauge.T).reshape(12, 6),
+        atol=1e-7,
+    )
     assert (left[5] - own[5]).norm() < 0.35 * own[5].norm()
     module.remove_gauge()  # a projection: idempotent
     assert torch.allclose(module.twists.detach().double(), left, atol=1e-9)
@@ -133,7 +137,10 @@ def test_off_or_not_yet_started_changes_nothing():
     assert not any(k.startswith("pose_correction") for k in off.state_dict())
     assert "pose_optimizer" not in off.training_state()
     assert not {"pose_rot_deg_max", "pose_shift_max"} & set(off.stats())
-    assert idle.pose_correction.twists.shape == (len(data), 6) and not idle.pose_correction.twists.any()
+    assert (
+        idle.pose_correction.twists.shape == (len(data), 6)
+        and not idle.pose_correction.twists.any()
+    )
 
 
 def test_bad_pose_options_are_refused():
@@ -155,14 +162,18 @@ def test_training_moves_the_poses_but_never_the_held_out_cameras():
     assert 0 < stats["pose_rot_deg_mean"] <= stats["pose_rot_deg_max"] < 5
     assert 0 < stats["pose_shift_mean"] <= stats["pose_shift_max"] < 0.5
     corrected = model.train_cameras(data.cameras)
-    assert torch.allclose(corrected.cam_from_world, correct_cam_from_world(
-        data.cameras.cam_from_world, twists, model.pose_correction.pivots))
+    assert torch.allclose(
+        corrected.cam_from_world,
+        correct_cam_from_world(data.cameras.cam_from_world, twists, model.pose_correction.pivots),
+    )
     held = ring(n=3, size=24)  # cameras the model never trained on
     for camera in (held[0], held[2], data.cameras[1]):  # render() takes any camera as given
         out = model.render(camera)
         with torch.no_grad():
-            ref = composite_rgbd(project_splats(model.gaussians(), camera,
-                                                int(model.active_sh_degree)), model.background)
+            ref = composite_rgbd(
+                project_splats(model.gaussians(), camera, int(model.active_sh_degree)),
+                model.background,
+            )
         assert torch.equal(out["rgb"], ref["rgb"])
 
 
@@ -211,14 +222,18 @@ def test_a_perturbed_training_camera_is_pulled_back(tmp_path, one_thread):
     view = [scene.frames[i]["name"] for i in scene.split("train")].index("r_033")
     true = data.cameras.cam_from_world.double()
     gen = torch.Generator().manual_seed(1)
-    axis, direction = torch.nn.functional.normalize(torch.randn(2, 3, generator=gen, dtype=F64), dim=1)
+    axis, direction = torch.nn.functional.normalize(
+        torch.randn(2, 3, generator=gen, dtype=F64), dim=1
+    )
     shift = 0.02 * float((scene.info.aabb[1] - scene.info.aabb[0]).norm())
     world_from_cam = invert_rigid(true[view])
     world_from_cam[:3, :3] = so3_exp(math.radians(1.0) * axis) @ world_from_cam[:3, :3]
     world_from_cam[:3, 3] += shift * direction
     cfw = data.cameras.cam_from_world.clone()
     cfw[view] = invert_rigid(world_from_cam).float()
-    data = TrainData(data.images, Cameras(data.cameras.K, cfw, data.cameras.width, data.cameras.height))
+    data = TrainData(
+        data.images, Cameras(data.cameras.K, cfw, data.cameras.width, data.cameras.height)
+    )
 
     config = GaussiansConfig(**{**PRESETS["fast"], "pose_refine": True, "max_gaussians": 12_000})
     model = GaussianModel(config, scene.info)
@@ -226,7 +241,9 @@ def test_a_perturbed_training_camera_is_pulled_back(tmp_path, one_thread):
         model.train_step(data, step)
 
     def errors(cam_from_world):
-        rot = rotation_angle_deg((cam_from_world[:, :3, :3] @ true[:, :3, :3].transpose(1, 2)).numpy())
+        rot = rotation_angle_deg(
+            (cam_from_world[:, :3, :3] @ true[:, :3, :3].transpose(1, 2)).numpy()
+        )
         centres = invert_rigid(cam_from_world)[:, :3, 3] - invert_rigid(true)[:, :3, 3]
         return torch.from_numpy(rot), centres.norm(dim=-1)
 

@@ -10,7 +10,14 @@ import torch
 from tests.conftest import recon_cli, sphere_workspace
 
 METHODS = {
-    "plenoxel": ["--set", "resolutions=16,32", "--set", "upsample_steps=6", "--set", "occupancy_res=16"],
+    "plenoxel": [
+        "--set",
+        "resolutions=16,32",
+        "--set",
+        "upsample_steps=6",
+        "--set",
+        "occupancy_res=16",
+    ],
     "ngp": ["--set", "rays_per_batch=512"],
     "nerf": ["--set", "rays_per_batch=256"],
     "3dgs": ["--set", "init_points=300"],
@@ -23,10 +30,30 @@ def ws(tmp_path_factory):
 
 
 def _train_and_eval(ws, method: str, run: str) -> dict:
-    recon_cli("train", "-w", str(ws), "--method", method, "--run", run, "--steps", "12", "--seed", "3",
-              "--threads", "2", "--eval-every", "1000", "--eval-views", "1", *METHODS[method],
-              env={"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"})
-    return json.loads(recon_cli("eval", "-w", str(ws), "--run", run, "--json", "--no-lpips").stdout)[run]
+    recon_cli(
+        "train",
+        "-w",
+        str(ws),
+        "--method",
+        method,
+        "--run",
+        run,
+        "--steps",
+        "12",
+        "--seed",
+        "3",
+        "--threads",
+        "2",
+        "--eval-every",
+        "1000",
+        "--eval-views",
+        "1",
+        *METHODS[method],
+        env={"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"},
+    )
+    return json.loads(
+        recon_cli("eval", "-w", str(ws), "--run", run, "--json", "--no-lpips").stdout
+    )[run]
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
@@ -35,11 +62,15 @@ def test_same_seed_and_threads_give_identical_model_and_metrics(ws, method):
     b = _train_and_eval(ws, method, f"{method}-b")
     assert a["per_view"].keys() == b["per_view"].keys()
     for stem in a["per_view"]:
-        assert a["per_view"][stem]["psnr"] == pytest.approx(b["per_view"][stem]["psnr"], abs=1e-6), stem
+        assert a["per_view"][stem]["psnr"] == pytest.approx(
+            b["per_view"][stem]["psnr"], abs=1e-6
+        ), stem
     sa = torch.load(ws / "runs" / f"{method}-a" / "model.pt", weights_only=True)["state_dict"]
     sb = torch.load(ws / "runs" / f"{method}-b" / "model.pt", weights_only=True)["state_dict"]
     assert sa.keys() == sb.keys()
     for k in sa:
         assert torch.equal(sa[k], sb[k]), k
-    versions = json.loads((ws / "workspace.json").read_text())["stages"][f"train/{method}-a"]["versions"]
+    versions = json.loads((ws / "workspace.json").read_text())["stages"][f"train/{method}-a"][
+        "versions"
+    ]
     assert versions["threads"] == 2 and "torch" in versions and "recon" in versions

@@ -15,17 +15,35 @@ AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
 
 def test_ray_aabb_hit_miss_inside_and_axis_parallel():
-    o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 2.0, 0.0], [0.0, 0.0, 0.0], [0.5, 0.5, -5.0],
-                      [3.0, 0.0, 0.0], [-3.0, -3.0, -3.0]])
-    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0],
-                      [1.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    o = torch.tensor(
+        [
+            [-3.0, 0.0, 0.0],
+            [-3.0, 2.0, 0.0],
+            [0.0, 0.0, 0.0],
+            [0.5, 0.5, -5.0],
+            [3.0, 0.0, 0.0],
+            [-3.0, -3.0, -3.0],
+        ]
+    )
+    d = torch.tensor(
+        [
+            [1.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 1.0, 1.0],
+        ]
+    )
     d = d / d.norm(dim=-1, keepdim=True)
     t0, t1, hit = ray_aabb_intersect(o, d, AABB)
     assert hit.tolist() == [True, False, True, True, False, True]
     torch.testing.assert_close(t0[[0, 2, 3]], torch.tensor([2.0, 0.0, 4.0]))  # inside starts at 0
     torch.testing.assert_close(t1[[0, 2, 3]], torch.tensor([4.0, 1.0, 6.0]))
-    s3 = 3 ** 0.5
-    torch.testing.assert_close(t0[5], torch.tensor(2 * s3)) and torch.testing.assert_close(t1[5], torch.tensor(4 * s3))
+    s3 = 3**0.5
+    torch.testing.assert_close(t0[5], torch.tensor(2 * s3)) and torch.testing.assert_close(
+        t1[5], torch.tensor(4 * s3)
+    )
     assert t0[1] == 0 and t1[1] == 0 and t0[4] == 0 and t1[4] == 0  # misses: empty range
 
 
@@ -94,7 +112,9 @@ def test_sample_pdf_matches_monte_carlo_histogram():
     cdf = torch.tensor([0.0, 1 / 8, 1 / 8, 1 / 2, 1.0])
     for ui, ti in zip(u, td[0]):
         i = int(torch.searchsorted(cdf, ui, right=True)) - 1
-        expect = edges[0, i] + (ui - cdf[i]) / (cdf[i + 1] - cdf[i]) * (edges[0, i + 1] - edges[0, i])
+        expect = edges[0, i] + (ui - cdf[i]) / (cdf[i + 1] - cdf[i]) * (
+            edges[0, i + 1] - edges[0, i]
+        )
         assert abs(ti - expect) < 1e-6
 
 
@@ -102,7 +122,9 @@ def test_sample_pdf_zero_weights_is_uniform_and_no_grad():
     edges = torch.linspace(0, 1, 5)[None].repeat(2, 1)
     weights = torch.zeros(2, 4, requires_grad=True)
     t = sample_pdf(edges, weights, 4, jitter=False)
-    torch.testing.assert_close(t, torch.tensor([0.125, 0.375, 0.625, 0.875]).expand(2, 4), atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        t, torch.tensor([0.125, 0.375, 0.625, 0.875]).expand(2, 4), atol=1e-4, rtol=0
+    )
     assert not t.requires_grad
 
 

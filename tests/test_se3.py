@@ -26,16 +26,22 @@ def exact_coefficients(theta: float) -> tuple[float, float, float]:
         t = mpmath.mpf(theta)
         if t == 0:
             return 1.0, 0.5, 1 / 6
-        return (float(mpmath.sin(t) / t), float((1 - mpmath.cos(t)) / t**2),
-                float((t - mpmath.sin(t)) / t**3))
+        return (
+            float(mpmath.sin(t) / t),
+            float((1 - mpmath.cos(t)) / t**2),
+            float((t - mpmath.sin(t)) / t**3),
+        )
 
 
 def test_rotation_by_90_degrees_about_z():
     T = se3_exp(torch.tensor([0.0, 0, 0, 0, 0, math.pi / 2], dtype=F64))
     expected = torch.tensor([[0.0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=F64)
     assert torch.allclose(T, expected, atol=1e-15)
-    assert torch.allclose(T[:3, :3] @ torch.tensor([1.0, 0, 0], dtype=F64),
-                          torch.tensor([0.0, 1, 0], dtype=F64), atol=1e-15)
+    assert torch.allclose(
+        T[:3, :3] @ torch.tensor([1.0, 0, 0], dtype=F64),
+        torch.tensor([0.0, 1, 0], dtype=F64),
+        atol=1e-15,
+    )
 
 
 def test_pure_translation_and_half_screw():
@@ -68,8 +74,14 @@ def test_coefficient_derivatives_are_continuous_at_the_branch_switch():
     grads = []
     for theta in (1 - 1e-9, 1 + 1e-9):
         t2 = torch.tensor(theta * theta, dtype=F64, requires_grad=True)
-        grads.append(torch.stack([torch.autograd.grad(c, t2, retain_graph=True)[0]
-                                  for c in rodrigues_coefficients(t2)]))
+        grads.append(
+            torch.stack(
+                [
+                    torch.autograd.grad(c, t2, retain_graph=True)[0]
+                    for c in rodrigues_coefficients(t2)
+                ]
+            )
+        )
     assert torch.allclose(grads[0], grads[1], rtol=1e-8, atol=0)
     with mpmath.workdps(50):
         dA = mpmath.diff(lambda s: mpmath.sin(mpmath.sqrt(s)) / mpmath.sqrt(s), 1)
@@ -111,7 +123,9 @@ def test_exp_gives_rigid_transforms_and_log_inverts_it():
     xi = random_twists(64, seed=0)
     T = se3_exp(xi)
     R = T[:, :3, :3]
-    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=F64).expand(64, 3, 3), atol=1e-14)
+    assert torch.allclose(
+        R @ R.transpose(1, 2), torch.eye(3, dtype=F64).expand(64, 3, 3), atol=1e-14
+    )
     assert torch.allclose(torch.linalg.det(R), torch.ones(64, dtype=F64), atol=1e-14)
     assert torch.equal(T[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=F64).expand(64, 4))
     assert torch.allclose(se3_log(T), xi, rtol=1e-10, atol=1e-12)
@@ -120,8 +134,9 @@ def test_exp_gives_rigid_transforms_and_log_inverts_it():
 
 def test_log_of_rotations_near_pi():
     """At theta -> pi the skew part vanishes; the axis comes from the symmetric part."""
-    axis = torch.nn.functional.normalize(torch.tensor([[0.2, -0.7, 0.4], [-1.0, 0.1, 0.05]],
-                                                      dtype=F64), dim=-1)
+    axis = torch.nn.functional.normalize(
+        torch.tensor([[0.2, -0.7, 0.4], [-1.0, 0.1, 0.05]], dtype=F64), dim=-1
+    )
     for angle in (math.pi, math.pi - 1e-7, math.pi - 1e-4):
         R = so3_exp(angle * axis)
         phi = so3_log(R)

@@ -3,7 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from recon.sfm.normalize import Similarity, normalize_scene, rotation_between
+from recon.cameras.similarity import Similarity
+from recon.sfm.normalize import normalize_scene, rotation_between
 from recon.sfm.sources import SourceError, holdout_split, read_colmap, read_transforms
 from tests.conftest import recon_cli
 
@@ -36,9 +37,15 @@ def test_holdout_split_every_8th_in_name_order():
     assert held == ["img00", "img08", "img16"]
 
 
-@pytest.mark.parametrize("content,match", [("{oops", "not valid JSON"), ('{"frames": []}', "no frames"),
-                                           ('{"a": 1}', "no 'frames'"),
-                                           ('{"camera_angle_x": 1, "frames": [{"file_path": "x"}]}', "lacks")])
+@pytest.mark.parametrize(
+    "content,match",
+    [
+        ("{oops", "not valid JSON"),
+        ('{"frames": []}', "no frames"),
+        ('{"a": 1}', "no 'frames'"),
+        ('{"camera_angle_x": 1, "frames": [{"file_path": "x"}]}', "lacks"),
+    ],
+)
 def test_malformed_transforms(tmp_path, content, match):
     p = tmp_path / "transforms.json"
     p.write_text(content)
@@ -66,7 +73,9 @@ def test_normalization_puts_cameras_in_unit_box_and_up_is_z():
     assert np.all(aabb[0] < 0) and np.all(aabb[1] > 0) and np.abs(aabb).max() <= 1
     assert np.allclose(sim.invert_points(sim.apply(pts)), pts)
     s2c = sim.world_from_cam_to_scene(c2w)
-    assert np.allclose(-s2c[:, :3, 1].mean(0) / np.linalg.norm(s2c[:, :3, 1].mean(0)), [0, 0, 1], atol=1e-9)
+    assert np.allclose(
+        -s2c[:, :3, 1].mean(0) / np.linalg.norm(s2c[:, :3, 1].mean(0)), [0, 0, 1], atol=1e-9
+    )
     assert isinstance(Similarity.from_json(sim.to_json()), Similarity)
 
 

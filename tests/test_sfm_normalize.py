@@ -32,7 +32,10 @@ def _sphere_masks(c2w, K, size, center, r):
     v, u = np.mgrid[0:size, 0:size] + 0.5
     masks = []
     for m, k in zip(c2w, K):
-        d = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1) @ m[:3, :3].T
+        d = (
+            np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1)
+            @ m[:3, :3].T
+        )
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         oc = center - m[:3, 3]
         t = d @ oc
@@ -67,7 +70,9 @@ def test_carve_needs_min_views_and_every_mask():
 def test_hull_box_of_a_sphere_contains_it_and_is_tight():
     c2w, K, _ = _ring(n=16, height=1.5)
     center, r = np.array([0.2, -0.1, 0.3]), 0.5
-    box = hull_box(c2w, K, _sphere_masks(c2w, K, 64, center, r), np.stack([center - 3.5, center + 3.5]))
+    box = hull_box(
+        c2w, K, _sphere_masks(c2w, K, 64, center, r), np.stack([center - 3.5, center + 3.5])
+    )
     assert np.all(box[0] <= center - r) and np.all(box[1] >= center + r), box
     # a ring of views above the equator bounds x, y tightly; z is looser (no view from below)
     assert np.all(box[1, :2] - box[0, :2] < 2 * r * 1.25), box
@@ -100,7 +105,11 @@ def test_sample_data_box_contains_the_plate():
     for kwargs, source in (({"depths": depths}, "depth"), ({"masks": masks}, "masks")):
         box, got = object_box(c2w, Ks, sizes, None, **kwargs)
         assert got == source
-        assert np.all(box[0] <= gt.bounds[0]) and np.all(box[1] >= gt.bounds[1]), (source, box, gt.bounds)
+        assert np.all(box[0] <= gt.bounds[0]) and np.all(box[1] >= gt.bounds[1]), (
+            source,
+            box,
+            gt.bounds,
+        )
     # depth bounds the visible surfaces tightly; silhouettes seen only from above cannot bound
     # the space under a plate that runs off the views, so the hull box is loose there
     box, _ = object_box(c2w, Ks, sizes, None, depths=depths, masks=masks)
@@ -111,4 +120,7 @@ def test_sample_data_box_contains_the_plate():
     inside = sim.apply(np.asarray(gt.vertices))
     assert np.all(inside >= aabb[0]) and np.all(inside <= aabb[1])
     assert np.abs(sim.apply(c2w[:, :3, 3])).max() <= 0.9 + 1e-9
-    assert json.loads((ROOT / "sample_data" / "transforms.json").read_text())["gt_mesh_path"] == "mesh.ply"
+    assert (
+        json.loads((ROOT / "sample_data" / "transforms.json").read_text())["gt_mesh_path"]
+        == "mesh.ply"
+    )

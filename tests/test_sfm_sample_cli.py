@@ -11,11 +11,18 @@ from tests.conftest import SAMPLE_DATA, recon_cli
 @pytest.mark.slow
 def test_sample_photos_register_with_accurate_poses(tmp_path):
     ws = tmp_path / "ws"
-    report = json.loads(recon_cli("sfm", str(SAMPLE_DATA / "images"), "-w", str(ws), "--json").stdout)
-    assert report["images_given"] == report["images_registered"] == 40 and report["unregistered"] == []
+    report = json.loads(
+        recon_cli("sfm", str(SAMPLE_DATA / "images"), "-w", str(ws), "--json").stdout
+    )
+    assert (
+        report["images_given"] == report["images_registered"] == 40 and report["unregistered"] == []
+    )
     assert json.loads((ws / "sfm" / "report.json").read_text())["images_registered"] == 40
-    out = json.loads(recon_cli("eval", "-w", str(ws), "--gt-poses", str(SAMPLE_DATA / "transforms.json"),
-                               "--json").stdout)
+    out = json.loads(
+        recon_cli(
+            "eval", "-w", str(ws), "--gt-poses", str(SAMPLE_DATA / "transforms.json"), "--json"
+        ).stdout
+    )
     pose = out["sfm"]["pose"]
     assert pose["matched"] == 40
     assert pose["median_rotation_error_deg"] <= 0.2

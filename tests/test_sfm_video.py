@@ -64,8 +64,10 @@ def test_measure_size_downscales_the_longer_side_only():
 
 def test_sharpness_falls_with_blur_and_ignores_colour_only_changes():
     frame = texture()
-    scores = [frame_sharpness(frame if s == 0 else cv2.GaussianBlur(frame, (0, 0), s))
-              for s in (0, 0.7, 1.5, 3, 6)]
+    scores = [
+        frame_sharpness(frame if s == 0 else cv2.GaussianBlur(frame, (0, 0), s))
+        for s in (0, 0.7, 1.5, 3, 6)
+    ]
     assert all(a > b for a, b in pairwise(scores))
     assert scores[-1] < 0.05 * scores[0]
     # measured on luma: the same luma in another colour scores the same
@@ -182,15 +184,20 @@ def test_frame_budgets_worked_examples():
 def test_names_suffixes_and_config_validation():
     assert frame_name("clip", 123) == "clip_000123.png"
     assert sorted(frame_name("a", i) for i in (10, 9, 100)) == [
-        "a_000009.png", "a_000010.png", "a_000100.png"]
+        "a_000009.png",
+        "a_000010.png",
+        "a_000100.png",
+    ]
     assert frame_stem("my walk.MOV") == "my_walk" and frame_stem("noext") == "noext"
     assert is_video("IMG_0001.MOV") and is_video("x.webm") and not is_video("x.jpg")
     assert not is_video("x.wmv")
     validate_video_config(VideoConfig())
     validate_video_config(VideoConfig(frames=0, fps=2.0))
-    for bad, match in [(VideoConfig(frames=10, fps=2.0), "exactly one"),
-                       (VideoConfig(frames=0), "exactly one"),
-                       (VideoConfig(frames=-1), "positive"),
-                       (VideoConfig(blur_ratio=1.0), "blur-ratio")]:
+    for bad, match in [
+        (VideoConfig(frames=10, fps=2.0), "exactly one"),
+        (VideoConfig(frames=0), "exactly one"),
+        (VideoConfig(frames=-1), "positive"),
+        (VideoConfig(blur_ratio=1.0), "blur-ratio"),
+    ]:
         with pytest.raises(ValueError, match=match):
             validate_video_config(bad)

@@ -35,8 +35,11 @@ def orbit_video(path: Path, views: list[int], blurred_views=BLURRED_VIEWS) -> Pa
 
 
 def snapshot(ws: Path) -> dict:
-    return {p.relative_to(ws): p.read_bytes() for p in ws.rglob("*")
-            if p.is_file() and ".locks" not in p.parts}
+    return {
+        p.relative_to(ws): p.read_bytes()
+        for p in ws.rglob("*")
+        if p.is_file() and ".locks" not in p.parts
+    }
 
 
 def assert_one_line_error(proc, match: str) -> None:
@@ -50,8 +53,9 @@ def test_video_to_poses_keeps_sharp_frames_and_tracks_the_video(tmp_path):
     video = orbit_video(tmp_path / "orbit.mp4", list(range(20)))
     ws = tmp_path / "ws"
     out = recon_cli("sfm", str(video), "-w", str(ws), "--frames", "20").stdout
-    assert ("1 video: 60 frames decoded, 20 extracted (sharpest per window), 18 kept "
-            "(2 too blurred)") in out
+    assert (
+        "1 video: 60 frames decoded, 20 extracted (sharpest per window), 18 kept (2 too blurred)"
+    ) in out
     report = json.loads((ws / "sfm" / "report.json").read_text())
     kept = [f"orbit_{3 * v + 1:06d}.png" for v in range(20) if v not in BLURRED_VIEWS]
     (clip,) = report["video"]["videos"]
@@ -80,13 +84,17 @@ def test_folder_of_photos_and_a_video_uses_both(tmp_path):
     for v in range(1, 20, 2):  # odd views as photos, even views filmed
         shutil.copy(SAMPLE_DATA / "images" / f"r_{v:03d}.png", folder)
     orbit_video(folder / "walk around.MOV", list(range(0, 20, 2)), blurred_views=())
-    report = json.loads(recon_cli("sfm", str(folder), "-w", str(tmp_path / "ws"), "--frames", "10",
-                                  "--json").stdout)
+    report = json.loads(
+        recon_cli("sfm", str(folder), "-w", str(tmp_path / "ws"), "--frames", "10", "--json").stdout
+    )
     frames = [k["name"] for k in report["video"]["videos"][0]["kept"]]
     assert frames == [f"walk_around_{3 * i + 1:06d}.png" for i in range(10)]
     assert report["skipped"] == [] and report["images_usable"] == 20
     assert report["images_registered"] == 20 and report["config"]["matcher"] == "sequential"
-    names = {f["name"] for f in json.loads((tmp_path / "ws" / "sfm" / "cameras.json").read_text())["frames"]}
+    names = {
+        f["name"]
+        for f in json.loads((tmp_path / "ws" / "sfm" / "cameras.json").read_text())["frames"]
+    }
     assert {"r_001", "walk_around_000001"} <= names
 
 
@@ -102,12 +110,17 @@ def test_bad_videos_give_one_line_and_leave_the_workspace_as_it_was(tmp_path, bl
     shutil.copy(SAMPLE_DATA / "images" / "r_000.png", folder)
     shutil.copy(garbage, folder / "b.mp4")
     ws = tmp_path / "ws"
-    for source, message in [(garbage, "cannot read video"), (scrambled, "no decodable frames"),
-                            (wmv, "neither a folder nor a video")]:
+    for source, message in [
+        (garbage, "cannot read video"),
+        (scrambled, "no decodable frames"),
+        (wmv, "neither a folder nor a video"),
+    ]:
         assert_one_line_error(recon_cli("sfm", str(source), "-w", str(ws), check=False), message)
         assert not ws.exists()  # a failed first run leaves no directory behind
-    assert_one_line_error(recon_cli("sfm", str(SAMPLE_DATA / "images"), "-w", str(ws), "--frames",
-                                    "5", check=False), "apply to videos")
+    assert_one_line_error(
+        recon_cli("sfm", str(SAMPLE_DATA / "images"), "-w", str(ws), "--frames", "5", check=False),
+        "apply to videos",
+    )
     assert not ws.exists()
     recon_cli("sfm", "--from-transforms", str(blender_dataset), "-w", str(ws))
     before = snapshot(ws)

@@ -48,8 +48,11 @@ def scramble_frames(video: Path, out: Path) -> Path:
 
 
 def ffmpeg(*args: str) -> None:
-    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-loglevel", "error", "-y",
-                    *args], check=True, capture_output=True)
+    subprocess.run(
+        [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-loglevel", "error", "-y", *args],
+        check=True,
+        capture_output=True,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +83,11 @@ def test_video_keeps_the_sharpest_of_each_window_and_drops_blurred(pan_video, tm
     kept = [i for i in EXPECTED_CHOSEN if i not in EXPECTED_DROPPED]
     assert video.chosen.tolist() == EXPECTED_CHOSEN and video.kept.tolist() == kept
     assert video.passes == 1 and video.stem == "pan_walk"
-    assert sorted(p.name for p in out.iterdir()) == video.names == [
-        f"pan_walk_{i:06d}.png" for i in kept]
+    assert (
+        sorted(p.name for p in out.iterdir())
+        == video.names
+        == [f"pan_walk_{i:06d}.png" for i in kept]
+    )
     assert cv2.imread(str(out / video.names[0])).shape == (200, 320, 3)
     report = video_report(video)
     assert report["frames_decoded"] == report["frames_announced"] == 24
@@ -91,16 +97,26 @@ def test_video_keeps_the_sharpest_of_each_window_and_drops_blurred(pan_video, tm
     blurred = [d for d in report["dropped"] if d["reason"].startswith("blurred")]
     assert [d["frame"] for d in blurred] == EXPECTED_DROPPED
     median = report["sharpness"]["median_of_chosen"]
-    assert blurred[0]["reason"] == (f"blurred: Laplacian variance {blurred[0]['sharpness']:.1f} "
-                                    f"< 0.35 x median {median:.1f}")
+    assert blurred[0]["reason"] == (
+        f"blurred: Laplacian variance {blurred[0]['sharpness']:.1f} < 0.35 x median {median:.1f}"
+    )
     others = [d for d in report["dropped"] if not d["reason"].startswith("blurred")]
     assert len(others) == 8 and sum(d["count"] for d in others) == 16
-    assert others[0] == {"frames": [0, 2], "count": 2,
-                         "reason": "not the sharpest of its window (frame 1 is)"}
+    assert others[0] == {
+        "frames": [0, 2],
+        "count": 2,
+        "reason": "not the sharpest of its window (frame 1 is)",
+    }
 
 
-@pytest.mark.parametrize("config", [VideoConfig(frames=8), VideoConfig(frames=0, fps=2.0),
-                                    VideoConfig(frames=100, blur_ratio=0.0)])
+@pytest.mark.parametrize(
+    "config",
+    [
+        VideoConfig(frames=8),
+        VideoConfig(frames=0, fps=2.0),
+        VideoConfig(frames=100, blur_ratio=0.0),
+    ],
+)
 def test_one_pass_extraction_matches_two_pass_twin(pan_video, tmp_path, config):
     out = tmp_path / "one"
     out.mkdir()
@@ -126,8 +142,10 @@ def test_truncated_video_is_chosen_on_its_decoded_frames(pan_video, tmp_path):
     decoded = len(video.scores)
     assert 0 < decoded < 24 and video.info.frames_announced == 24 and video.passes == 2
     assert video.bounds.tolist() == window_bounds(decoded, 5).tolist()
-    assert files(out) == {n: (tmp_path / "twin" / n).read_bytes()
-                          for n in two_pass_twin(cut, tmp_path / "twin", "cut", 5, 0.35)}
+    assert files(out) == {
+        n: (tmp_path / "twin" / n).read_bytes()
+        for n in two_pass_twin(cut, tmp_path / "twin", "cut", 5, 0.35)
+    }
     assert "announces 24" in video_report(video)["notes"][0]
 
 
@@ -139,8 +157,9 @@ def test_display_rotation_is_applied(pan_video, tmp_path):
     out = tmp_path / "frames"
     (video,) = extract_videos([rotated], out, VideoConfig(frames=8, blur_ratio=0.0), no_progress)
     assert (video.info.width, video.info.height, video.info.rotation_deg) == (200, 320, 270)
-    (plain,) = extract_videos([pan_video], tmp_path / "plain", VideoConfig(frames=8, blur_ratio=0.0),
-                              no_progress)
+    (plain,) = extract_videos(
+        [pan_video], tmp_path / "plain", VideoConfig(frames=8, blur_ratio=0.0), no_progress
+    )
     assert video.chosen.tolist() == plain.chosen.tolist()  # rotation does not change sharpness
     upright = cv2.imread(str(out / video.names[0]))
     original = cv2.imread(str(tmp_path / "plain" / plain.names[0]))
@@ -155,8 +174,9 @@ def test_several_videos_share_the_frame_budget_by_duration(tmp_path):
     b = write_video(tmp_path / "a.mov", frames[:12], fps=5.0)  # 2.4 s
     c = write_video(tmp_path / "c.mp4", frames[:12])  # 1.2 s
     assert unique_stems([a, b, c]) == ["a_mp4", "a_mov", "c"]
-    videos = extract_videos([a, b, c], tmp_path / "out", VideoConfig(frames=10, blur_ratio=0.0),
-                            no_progress)
+    videos = extract_videos(
+        [a, b, c], tmp_path / "out", VideoConfig(frames=10, blur_ratio=0.0), no_progress
+    )
     assert [len(v.chosen) for v in videos] == [4, 4, 2]
     names = sorted(p.name for p in (tmp_path / "out").iterdir())
     assert names == sorted(n for v in videos for n in v.names)
@@ -169,8 +189,12 @@ def test_bad_videos_raise_one_line_errors(pan_video, tmp_path):
     header_only = tmp_path / "empty.mp4"  # a writer closed before any frame
     cv2.VideoWriter(str(header_only), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 64)).release()
     scrambled = scramble_frames(pan_video, tmp_path / "scrambled.mp4")
-    cases = [(garbage, "cannot read video"), (header_only, "cannot read video"),
-             (scrambled, "no decodable frames"), (tmp_path / "missing.mp4", "does not exist")]
+    cases = [
+        (garbage, "cannot read video"),
+        (header_only, "cannot read video"),
+        (scrambled, "no decodable frames"),
+        (tmp_path / "missing.mp4", "does not exist"),
+    ]
     for path, message in cases:
         out = tmp_path / f"out-{path.stem}"
         with quiet_decoder(False), pytest.raises(VideoError, match=message) as info:

@@ -17,12 +17,13 @@ import trimesh
 from recon.cameras import project_points
 from recon.cameras.cameras import intrinsics_matrix
 from recon.cameras.conventions import opencv_c2w_from_opengl_c2w, rotation_from_quat_wxyz
+from recon.cameras.look_at import look_at
 from recon.io.exr import read_depth_exr
 from recon.synthetic.raster import (
     front_facing,
     interpolate,
     rasterize,
-    rasterize_slow,
+    rasterize_reference,
     transform_points,
 )
 from recon.synthetic.scene import (
@@ -31,7 +32,6 @@ from recon.synthetic.scene import (
     _contrasting,
     albedo,
     build_scene,
-    look_at,
     make_texture,
     render_view,
     ring_cameras,
@@ -126,7 +126,7 @@ def test_matches_brute_force_ray_casting(seed):
     K, cam_from_world = _K(30.0, 28.0, 16.0, 11.0), _random_pose(seed)
     points_in_world = _world_from_cam_points(points, cam_from_world)
     frags = rasterize(points_in_world, faces, K, cam_from_world, 32, 24, max_candidates=97)
-    face, depth = rasterize_slow(points_in_world, faces, K, cam_from_world, 32, 24)
+    face, depth = rasterize_reference(points_in_world, faces, K, cam_from_world, 32, 24)
     assert frags.mask.sum() > 200  # the test sees real overlap, not an empty image
     assert torch.equal(frags.face_index, face)
     torch.testing.assert_close(frags.depth, depth, rtol=1e-10, atol=0)

@@ -8,8 +8,9 @@ import torch
 
 from recon.cameras import Cameras
 from recon.models.base import MethodSpec, Model, register
-from recon.train.config import TrainConfig, apply_overrides, field_help
-from recon.train.loop import LoopState, run_loop, should_stop
+from recon.options import field_help
+from recon.train.config import TrainConfig, apply_overrides
+from recon.train.loop import LoopState, eval_due, run_loop, should_stop
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,7 +40,11 @@ class Toy(Model):
 
     def render(self, camera: Cameras):
         h, w = int(camera.height[0]), int(camera.width[0])
-        return {"rgb": self.color.detach().expand(h, w, 3), "depth": torch.ones(h, w), "acc": torch.ones(h, w)}
+        return {
+            "rgb": self.color.detach().expand(h, w, 3),
+            "depth": torch.ones(h, w),
+            "acc": torch.ones(h, w),
+        }
 
 
 def _data():
@@ -56,8 +61,13 @@ def test_stopping_rules():
     assert should_stop(budget, LoopState(wall_s=0.5, elapsed_s=1.5)) == "time_budget"
     assert should_stop(budget, LoopState(wall_s=0.5, elapsed_s=0.5)) is None
     # the last evaluation's duration is kept in reserve for the final one
-    assert should_stop(budget, LoopState(wall_s=0.5, elapsed_s=0.7, eval_cost_s=0.4)) == "time_budget"
-    assert should_stop(TrainConfig(method="x", patience=2), LoopState(evals_since_best=2)) == "converged"
+    assert (
+        should_stop(budget, LoopState(wall_s=0.5, elapsed_s=0.7, eval_cost_s=0.4)) == "time_budget"
+    )
+    assert (
+        should_stop(TrainConfig(method="x", patience=2), LoopState(evals_since_best=2))
+        == "converged"
+    )
     assert should_stop(cfg, LoopState(step=3)) is None
 
 
@@ -77,8 +87,12 @@ class SlowEval(Toy):
 
 
 def _held(n):
-    cams = Cameras(torch.eye(3)[None].repeat(n, 1, 1), torch.eye(4)[None].repeat(n, 1, 1),
-                   torch.full((n,), 4), torch.full((n,), 4))
+    cams = Cameras(
+        torch.eye(3)[None].repeat(n, 1, 1),
+        torch.eye(4)[None].repeat(n, 1, 1),
+        torch.full((n,), 4),
+        torch.full((n,), 4),
+    )
     return cams, torch.full((n, 4, 4, 3), 0.25)
 
 
@@ -99,6 +113,29 @@ def test_time_budget_counts_evaluations():
     assert logs[-1]["test_psnr"] > 0 and logs[-1]["elapsed_s"] <= 1.1
 
 
+def test_slow_evaluations_are_capped_to_a_fraction_of_the_run():
+    """The same slow evaluations (0.2 s each) with the default cap (0.1): after the first one
+    the next is not due before the run is 4 s old, so in 1 s only the final one follows."""
+    cams, imgs = _held(4)
+    st, logs = LoopState(), []
+    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
+    assert cfg.eval_max_fraction == 0.1
+    assert run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    evals = [e for e in logs if "test_psnr" in e]
+    assert len(evals) == 2  # the first periodic one and the final one; uncapped: one per 10 ms
+    assert st.wall_s > 0.5 * st.elapsed_s  # training, not evaluating, fills the budget
+
+
+def test_eval_due_worked_example():
+    cfg = TrainConfig(method="toy", eval_every_s=30.0, eval_max_fraction=0.1)
+    assert not eval_due(cfg, LoopState(wall_s=20.0))
+    assert eval_due(cfg, LoopState(wall_s=30.0, elapsed_s=31.0))  # nothing spent yet
+    # 10 s evaluations: after one at 40 s of the run the next waits until the run is 200 s
+    spent = {"eval_total_s": 10.0, "eval_cost_s": 10.0, "last_eval_wall": 30.0}
+    assert not eval_due(cfg, LoopState(wall_s=80.0, elapsed_s=95.0, **spent))
+    assert eval_due(cfg, LoopState(wall_s=180.0, elapsed_s=190.0, **spent))
+
+
 def test_interrupt_during_an_evaluation_stops_between_views():
     """Ctrl-C / SIGTERM (the `interrupted` flag) stop an evaluation after the view in progress,
     not after the whole evaluation."""
@@ -107,23 +144,42 @@ def test_interrupt_during_an_evaluation_stops_between_views():
     model = SlowEval(0.01, on_render=lambda: renders.append(1))
     cfg = TrainConfig(method="toy", steps=100, eval_every_s=0.0)
     with pytest.raises(KeyboardInterrupt):
-        run_loop(model, _data(), cams, imgs, cfg, LoopState(), lambda e: None, lambda s: None,
-                 interrupted=lambda: len(renders) >= 3)
+        run_loop(
+            model,
+            _data(),
+            cams,
+            imgs,
+            cfg,
+            LoopState(),
+            lambda e: None,
+            lambda s: None,
+            interrupted=lambda: len(renders) >= 3,
+        )
     assert len(renders) == 3 and model.training  # stopped inside the first evaluation
 
 
 def test_non_finite_loss_raises_at_once():
     model, logs = Toy(poison_steps={3}), []
     with pytest.raises(FloatingPointError):
-        run_loop(model, _data(), None, None, TrainConfig(method="toy", steps=10), LoopState(), logs.append,
-                 lambda st: None)
+        run_loop(
+            model,
+            _data(),
+            None,
+            None,
+            TrainConfig(method="toy", steps=10),
+            LoopState(),
+            logs.append,
+            lambda st: None,
+        )
     assert any(e.get("event") == "non_finite_loss" for e in logs)
 
 
 def test_overrides_are_typed_and_validated():
     from recon.models.plenoxel import PlenoxelConfig
 
-    out = apply_overrides(PlenoxelConfig, {}, ["rays_per_batch=2048", "resolutions=32,64", "lr_sh=0.5"])
+    out = apply_overrides(
+        PlenoxelConfig, {}, ["rays_per_batch=2048", "resolutions=32,64", "lr_sh=0.5"]
+    )
     assert out == {"rays_per_batch": 2048, "resolutions": (32, 64), "lr_sh": 0.5}
     with pytest.raises(ValueError, match="unknown option"):
         apply_overrides(PlenoxelConfig, {}, ["nope=1"])
@@ -137,14 +193,25 @@ def test_rollback_after_nan_in_a_real_run(tmp_path):
 
     data = make_blender_dataset(tmp_path / "d")
     recon_cli("sfm", "--from-transforms", str(data), "-w", str(tmp_path / "ws"))
-    register(MethodSpec(name="toy", config_cls=ToyConfig, build=lambda cfg, scene: Toy(poison_steps={5}),
-                        presets={"fast": {}}))
+    register(
+        MethodSpec(
+            name="toy",
+            config_cls=ToyConfig,
+            build=lambda cfg, scene: Toy(poison_steps={5}),
+            presets={"fast": {}},
+        )
+    )
     ws = Workspace.open(tmp_path / "ws")
-    cfg = TrainConfig(method="toy", steps=20, checkpoint_every_s=0.0, eval_views=1, eval_every_s=0.0)
+    cfg = TrainConfig(
+        method="toy", steps=20, checkpoint_every_s=0.0, eval_views=1, eval_every_s=0.0
+    )
     summary = train(ws, "toy", cfg, [], resume=False, force=False, log_fn=lambda *_: None)
     assert summary["steps"] == 20 and summary["status"] == "done"
     log = [json.loads(ln) for ln in ws.log_jsonl("toy").read_text().splitlines()]
-    assert [e["event"] for e in log if e.get("event") in ("non_finite_loss", "rollback")] == ["non_finite_loss", "rollback"]
+    assert [e["event"] for e in log if e.get("event") in ("non_finite_loss", "rollback")] == [
+        "non_finite_loss",
+        "rollback",
+    ]
     rollback = next(e for e in log if e.get("event") == "rollback")
     assert rollback["lr_scale"] == 0.5 and "loss became nan" in rollback["cause"]
 

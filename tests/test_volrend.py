@@ -1,4 +1,4 @@
-"""The compositing quadrature: seed Problem 3, padded == packed, limiting cases, stability."""
+"""The compositing quadrature: a worked example, padded == packed, limiting cases, stability."""
 
 import math
 
@@ -7,14 +7,16 @@ import torch
 
 from recon.volrend import (
     accumulate_along_rays,
+    alpha_compositing,
     exclusive_cumsum,
     render_weights,
     render_with_fn,
+    surface_depth,
     volume_render,
 )
 
 
-def problem3():
+def worked_example():
     sigma = torch.tensor([[0.1, 2.0, 5.0, 1.0]], dtype=torch.float64)
     color = torch.tensor([[0.2, 0.8, 0.5, 0.9]], dtype=torch.float64)[..., None].repeat(1, 1, 3)
     starts = torch.arange(4, dtype=torch.float64)[None] * 0.5
@@ -22,7 +24,7 @@ def problem3():
 
 
 def test_seed_problem3_worked_numbers():
-    sigma, color, t0, t1 = problem3()
+    sigma, color, t0, t1 = worked_example()
     out = volume_render(sigma, color, t0, t1)
     assert out.rgb[0, 0].item() == pytest.approx(0.661566, abs=1e-6)
     assert out.acc[0].item() == pytest.approx(0.982578, abs=1e-6)
@@ -34,7 +36,7 @@ def test_seed_problem3_worked_numbers():
 
 
 def test_seed_problem3_float32_and_background():
-    sigma, color, t0, t1 = (x.float() for x in problem3())
+    sigma, color, t0, t1 = (x.float() for x in worked_example())
     bg = torch.tensor([0.0, 1.0, 0.5])
     out = volume_render(sigma, color, t0, t1, background=bg)
     residual = 1 - 0.982578
@@ -120,7 +122,9 @@ def test_weights_plus_residual_is_one_and_gradients_finite(tau):
     t0 = torch.arange(S, dtype=torch.float32).expand(2, S)
     out = volume_render(sig, torch.rand(2, S, 3), t0, t0 + 1.0)
     residual = torch.exp(-(sig * 1.0).double().sum(-1))
-    torch.testing.assert_close(out.acc.double() + residual, torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        out.acc.double() + residual, torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0
+    )
     (out.rgb.sum() + out.depth.sum()).backward()
     assert torch.isfinite(sig.grad).all()
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.weights).all()
@@ -139,7 +143,9 @@ def test_gradcheck_float64_padded_and_packed():
     ri = torch.arange(3)[:, None].expand_as(mask)[mask]
 
     def padded(s, c):
-        out = volume_render(s, c, t0, t1, background=torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64))
+        out = volume_render(
+            s, c, t0, t1, background=torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
+        )
         return out.rgb, out.depth
 
     def packed(s, c):
@@ -147,7 +153,9 @@ def test_gradcheck_float64_padded_and_packed():
         return out.rgb, out.acc
 
     assert torch.autograd.gradcheck(padded, (sig, rgb))
-    assert torch.autograd.gradcheck(packed, (sig[mask].detach().requires_grad_(), rgb[mask].detach().requires_grad_()))
+    assert torch.autograd.gradcheck(
+        packed, (sig[mask].detach().requires_grad_(), rgb[mask].detach().requires_grad_())
+    )
 
 
 def test_accumulate_packed_needs_n_rays_and_handles_empty_rays():
@@ -159,7 +167,7 @@ def test_accumulate_packed_needs_n_rays_and_handles_empty_rays():
 
 
 def test_render_with_fn_matches_tensors():
-    sigma, color, t0, t1 = problem3()
+    sigma, color, t0, t1 = worked_example()
     calls = []
 
     def fn(ts, te, ri):
@@ -175,8 +183,66 @@ def test_continuous_limit_matches_beer_lambert():
     # constant density sigma on [0, L]: acc -> 1 - exp(-sigma L), depth -> closed form
     sigma, L, S = 1.3, 2.0, 20000
     t = torch.linspace(0, L, S + 1, dtype=torch.float64)
-    out = volume_render(torch.full((1, S), sigma, dtype=torch.float64), torch.ones(1, S, 3, dtype=torch.float64),
-                        t[None, :-1], t[None, 1:])
+    out = volume_render(
+        torch.full((1, S), sigma, dtype=torch.float64),
+        torch.ones(1, S, 3, dtype=torch.float64),
+        t[None, :-1],
+        t[None, 1:],
+    )
     assert out.acc.item() == pytest.approx(1 - math.exp(-sigma * L), rel=1e-9)
     exact_depth = (1 - math.exp(-sigma * L) * (1 + sigma * L)) / sigma  # int t sigma e^{-sigma t}
     assert out.depth.item() == pytest.approx(exact_depth, rel=1e-6)
+
+
+def test_alpha_compositing_example_and_termination():
+    alpha = torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64)
+    w, used = alpha_compositing(alpha)
+    torch.testing.assert_close(w, torch.tensor([0.5, 0.25, 0.125], dtype=torch.float64))
+    w, used = alpha_compositing(alpha, t_min=0.2)  # T (1 - alpha) at the third: 0.125 < 0.2
+    torch.testing.assert_close(w, torch.tensor([0.5, 0.25, 0.0], dtype=torch.float64))
+    assert used.tolist() == [0.5, 0.5, 0.0]
+
+
+def test_alpha_compositing_is_render_weights_with_alpha_given():
+    g = torch.Generator().manual_seed(4)
+    sigmas = torch.rand(6, 9, generator=g, dtype=torch.float64) * 4
+    t = torch.sort(torch.rand(6, 10, generator=g, dtype=torch.float64), dim=-1).values
+    w_sigma, _, alphas = render_weights(sigmas, t[:, :-1], t[:, 1:])
+    w_alpha, _ = alpha_compositing(alphas)
+    torch.testing.assert_close(w_alpha, w_sigma, rtol=1e-12, atol=1e-14)
+
+
+def test_alpha_compositing_matches_the_cumprod_definition_padded_and_packed():
+    """Brute-force twin: T_i as a running product of (1 - alpha_j), and the 3DGS stop rule
+    applied literally; packed (rows of a ray along dim 0, trailing pixels) equals padded."""
+    g = torch.Generator().manual_seed(5)
+    alpha = torch.rand(8, 30, generator=g, dtype=torch.float64) * 0.99
+    alpha = alpha * (torch.rand(8, 30, generator=g, dtype=torch.float64) < 0.6)
+    t_min = 1e-3
+    expected = torch.zeros_like(alpha)
+    for r in range(8):
+        T = 1.0
+        for i in range(30):
+            a = float(alpha[r, i])
+            if a > 0 and T * (1 - a) < t_min:
+                break
+            expected[r, i] = T * a
+            T *= 1 - a
+    padded, _ = alpha_compositing(alpha, t_min=t_min)
+    torch.testing.assert_close(padded, expected, rtol=1e-12, atol=1e-14)
+    rays = torch.arange(2).repeat_interleave(15)  # two rays of 15 samples, 8 pixels each
+    packed, _ = alpha_compositing(alpha.T.contiguous(), rays, t_min=t_min)
+    split = torch.cat(
+        [
+            alpha_compositing(alpha[:, :15], t_min=t_min)[0],
+            alpha_compositing(alpha[:, 15:], t_min=t_min)[0],
+        ],
+        dim=1,
+    )
+    torch.testing.assert_close(packed.T, split, rtol=1e-12, atol=1e-14)
+
+
+def test_surface_depth_divides_by_opacity_and_is_zero_where_nothing_is_hit():
+    expected = torch.tensor([1.5, 0.0, 2.0])
+    acc = torch.tensor([0.5, 0.0, 1.0])
+    torch.testing.assert_close(surface_depth(expected, acc), torch.tensor([3.0, 0.0, 2.0]))

@@ -37,7 +37,9 @@ def test_corrupt_workspace_json_is_reported(tmp_path):
 def test_older_schema_is_migrated(tmp_path, monkeypatch):
     ws = Workspace.create(tmp_path / "ws")
     ws.json_path.write_text(json.dumps({"schema_version": 0, "records": {"sfm": {}}}))
-    monkeypatch.setitem(wsmod.MIGRATIONS, 0, lambda d: {"schema_version": 1, "stages": d["records"]})
+    monkeypatch.setitem(
+        wsmod.MIGRATIONS, 0, lambda d: {"schema_version": 1, "stages": d["records"]}
+    )
     assert ws.load() == {"schema_version": 1, "stages": {"sfm": {}}}
 
 
@@ -99,9 +101,18 @@ def test_staleness_propagates_downstream(tmp_path):
     out.write_text("cams")
     model = ws.root / "model.txt"
     model.write_text("m")
-    ws.record_stage("sfm", config={}, inputs={"s": src}, outputs={"o": out}, upstream=[], started=0, ended=1)
-    ws.record_stage("train/a", config={}, inputs={"c": out}, outputs={"m": model}, upstream=["sfm"],
-                    started=1, ended=2)
+    ws.record_stage(
+        "sfm", config={}, inputs={"s": src}, outputs={"o": out}, upstream=[], started=0, ended=1
+    )
+    ws.record_stage(
+        "train/a",
+        config={},
+        inputs={"c": out},
+        outputs={"m": model},
+        upstream=["sfm"],
+        started=1,
+        ended=2,
+    )
     assert {k: v["state"] for k, v in ws.status().items()} == {"sfm": "done", "train/a": "done"}
     src.write_text("v2")
     st = ws.status()

@@ -51,7 +51,9 @@ def test_a_rerun_of_sfm_makes_the_level_stale(ws_root, tmp_path):
     ensure_pyramid_level(ws, scene, 2)
     doc = json.loads(ws.cameras_json.read_text())
     before = json.loads((ws.pyramid_dir(2) / "pyramid.json").read_text())["source"]
-    ws.cameras_json.write_text(json.dumps(doc) + "\n")  # what a new sfm run does: a new cameras.json
+    ws.cameras_json.write_text(
+        json.dumps(doc) + "\n"
+    )  # what a new sfm run does: a new cameras.json
     ensure_pyramid_level(ws, scene, 2)
     after = json.loads((ws.pyramid_dir(2) / "pyramid.json").read_text())["source"]
     assert before != after
@@ -59,21 +61,64 @@ def test_a_rerun_of_sfm_makes_the_level_stale(ws_root, tmp_path):
 
 def test_train_eval_render_at_levels_through_the_cli(ws_root):
     ws = str(ws_root)
-    recon_cli("train", "-w", ws, "--method", "3dgs", "--run", "half", "--steps", "5", "--downscale", "2",
-              "--eval-views", "1", "--threads", "1")
+    recon_cli(
+        "train",
+        "-w",
+        ws,
+        "--method",
+        "3dgs",
+        "--run",
+        "half",
+        "--steps",
+        "5",
+        "--downscale",
+        "2",
+        "--eval-views",
+        "1",
+        "--threads",
+        "1",
+    )
     run = json.loads((ws_root / "runs" / "half" / "run.json").read_text())
-    assert run["resolution"]["working"] == {"downscale": 2, "width": 12, "height": 12, "source": "downscale",
-                                            "reason": "--downscale 2 was given"}
-    out = json.loads(recon_cli("eval", "-w", ws, "--run", "half", "--no-lpips", "--json").stdout)["half"]
+    assert run["resolution"]["working"] == {
+        "downscale": 2,
+        "width": 12,
+        "height": 12,
+        "source": "downscale",
+        "reason": "--downscale 2 was given",
+    }
+    out = json.loads(recon_cli("eval", "-w", ws, "--run", "half", "--no-lpips", "--json").stdout)[
+        "half"
+    ]
     assert out["resolution"] == [12, 12] and out["downscale"] == 2  # the run's level by default
-    full = json.loads(recon_cli("eval", "-w", ws, "--run", "half", "--no-lpips", "--downscale", "1",
-                                "--json").stdout)["half"]
+    full = json.loads(
+        recon_cli(
+            "eval", "-w", ws, "--run", "half", "--no-lpips", "--downscale", "1", "--json"
+        ).stdout
+    )["half"]
     assert full["resolution"] == [24, 24] and full["rendered_at"]["downscale"] == 1
     assert "psnr_border" in full["mean"]
-    r = json.loads(recon_cli("render", "-w", ws, "--run", "half", "--max-side", "20", "--json").stdout)
+    r = json.loads(
+        recon_cli("render", "-w", ws, "--run", "half", "--max-side", "20", "--json").stdout
+    )
     assert r["resolution"] == [12, 12] and r["rendered_at"]["size"] == [12, 12]
     report = (ws_root / "report.md").read_text()
     assert "| half | 3dgs | 12×12 |" in report
-    bad = recon_cli("train", "-w", ws, "--method", "3dgs", "--run", "x", "--steps", "5", "--downscale", "2",
-                    "--max-side", "10", check=False)
-    assert bad.returncode != 0 and "not both" in bad.stderr and not (ws_root / "runs" / "x").exists()
+    bad = recon_cli(
+        "train",
+        "-w",
+        ws,
+        "--method",
+        "3dgs",
+        "--run",
+        "x",
+        "--steps",
+        "5",
+        "--downscale",
+        "2",
+        "--max-side",
+        "10",
+        check=False,
+    )
+    assert (
+        bad.returncode != 0 and "not both" in bad.stderr and not (ws_root / "runs" / "x").exists()
+    )

@@ -64,7 +64,9 @@ class Cameras:
     def __getitem__(self, index) -> Cameras:
         if isinstance(index, int):
             index = slice(index, index + 1)
-        return Cameras(self.K[index], self.cam_from_world[index], self.width[index], self.height[index])
+        return Cameras(
+            self.K[index], self.cam_from_world[index], self.width[index], self.height[index]
+        )
 
     @property
     def world_from_cam(self) -> Tensor:
@@ -100,5 +102,6 @@ class Cameras:
         h = torch.as_tensor(height, device=self.height.device).expand_as(self.height).long()
         sx = (w.double() / self.width.double()).to(self.K)[:, None]
         sy = (h.double() / self.height.double()).to(self.K)[:, None]
-        return Cameras(scale_intrinsics(self.K, sx, sy), self.cam_from_world.clone(), w.clone(),
-                       h.clone())
+        return Cameras(
+            scale_intrinsics(self.K, sx, sy), self.cam_from_world.clone(), w.clone(), h.clone()
+        )

@@ -59,8 +59,12 @@ def correct_cam_from_world(cam_from_world: Tensor, twists: Tensor, pivots: Tenso
 
 def correct_cameras(cameras: Cameras, twists: Tensor, pivots: Tensor) -> Cameras:
     """C cameras with `correct_cam_from_world` applied (differentiable in twists (C, 6))."""
-    return Cameras(cameras.K, correct_cam_from_world(cameras.cam_from_world, twists, pivots),
-                   cameras.width, cameras.height)
+    return Cameras(
+        cameras.K,
+        correct_cam_from_world(cameras.cam_from_world, twists, pivots),
+        cameras.width,
+        cameras.height,
+    )
 
 
 def pivot_depths(cameras: Cameras, center: Tensor) -> Tensor:
@@ -138,5 +142,9 @@ class PoseCorrection(nn.Module):
         if len(self.twists) == 0:
             return {}
         degrees, shift = correction_sizes(self.twists, self.pivots)
-        return {"pose_rot_deg_mean": float(degrees.mean()), "pose_rot_deg_max": float(degrees.max()),
-                "pose_shift_mean": float(shift.mean()), "pose_shift_max": float(shift.max())}
+        return {
+            "pose_rot_deg_mean": float(degrees.mean()),
+            "pose_rot_deg_max": float(degrees.max()),
+            "pose_shift_mean": float(shift.mean()),
+            "pose_shift_max": float(shift.max()),
+        }

@@ -10,11 +10,11 @@ from recon.cameras.cameras import Cameras
 
 
 def project_points(points_in_cam: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
-    """Pinhole projection  lambda [u, v, 1]^T = K X_cam  (seed, "The pinhole camera").
+    """Pinhole projection  lambda [u, v, 1]^T = K X_cam  (Hartley & Zisserman 2004, Sec. 6.1).
 
     points_in_cam: (..., 3); K: (..., 3, 3) broadcastable. Returns uv (..., 2) in pixels
     and depth (..., ) = Z along the optical axis.
-    Worked example (seed Problem 1): f=800, c=(320, 240), X=(0.5, -0.3, 4) -> (420, 180).
+    Worked example: f=800, c=(320, 240), X=(0.5, -0.3, 4) -> (420, 180).
     """
     z = points_in_cam[..., 2]
     xy = points_in_cam[..., :2] / z[..., None]
@@ -38,7 +38,9 @@ def pixel_centers(width: int, height: int, device=None, dtype=torch.float32) -> 
     return torch.stack([uu, vv], dim=-1)
 
 
-def rays_from_pixels(uv: Tensor, K: Tensor, world_from_cam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def rays_from_pixels(
+    uv: Tensor, K: Tensor, world_from_cam: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
     """World-space rays through pixels.
 
     uv: (..., 2); K: (..., 3, 3); world_from_cam: (..., 4, 4), broadcastable.

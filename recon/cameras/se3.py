@@ -56,9 +56,11 @@ def rodrigues_coefficients(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     t2_closed = torch.where(small, torch.ones_like(theta2), theta2)
     t = torch.sqrt(t2_closed)
     half_sin = torch.sin(0.5 * t)
-    closed = (torch.sin(t) / t,
-              2 * half_sin * half_sin / t2_closed,  # 1 - cos t = 2 sin^2(t / 2): no cancellation
-              (t - torch.sin(t)) / (t2_closed * t))
+    closed = (
+        torch.sin(t) / t,
+        2 * half_sin * half_sin / t2_closed,  # 1 - cos t = 2 sin^2(t / 2): no cancellation
+        (t - torch.sin(t)) / (t2_closed * t),
+    )
     return tuple(torch.where(small, _series(t2_series, k + 1), c) for k, c in enumerate(closed))
 
 
@@ -107,8 +109,9 @@ def so3_log(R: Tensor) -> Tensor:
     within 1e-3 of pi, where w vanishes: there a is the largest column of
     (R + R^T) / 2 - cos(theta) I = (1 - cos(theta)) a a^T, signed to agree with w.
     """
-    w = 0.5 * torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                           R[..., 1, 0] - R[..., 0, 1]], -1)
+    w = 0.5 * torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
     sin = w.norm(dim=-1)
     cos = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1)
     theta = torch.atan2(sin, cos)

@@ -11,15 +11,28 @@ import click
 from recon.workspace import WorkspaceError
 
 # Errors a user can act on: printed as one line, exit code 1.
-USER_ERRORS: tuple[type[BaseException], ...] = (WorkspaceError, ValueError, FileNotFoundError,
-                                                 PermissionError, OSError)
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    WorkspaceError,
+    ValueError,
+    FileNotFoundError,
+    PermissionError,
+    OSError,
+)
 
 workspace_option = click.option(
-    "-w", "--workspace", "workspace", required=True, type=click.Path(file_okay=False),
+    "-w",
+    "--workspace",
+    "workspace",
+    required=True,
+    type=click.Path(file_okay=False),
     help="Workspace directory (created by `recon sfm`).",
 )
-json_option = click.option("--json", "as_json", is_flag=True,
-                           help="Print a machine-readable JSON result on stdout (no progress output).")
+json_option = click.option(
+    "--json",
+    "as_json",
+    is_flag=True,
+    help="Print a machine-readable JSON result on stdout (no progress output).",
+)
 
 
 def emit_json(obj) -> None:

@@ -41,18 +41,18 @@ def cli(ctx: click.Context, verbose: bool) -> None:
 
 
 def _register_commands() -> None:
-    from recon.cli import sfm_cmd, status_cmd
+    from recon.cli import eval_cmd, export_cmd, mesh_cmd, render_cmd, sfm_cmd, status_cmd, train_cmd
 
-    cli.add_command(sfm_cmd.sfm)
-    cli.add_command(status_cmd.status)
-    for name in ("train_cmd", "render_cmd", "mesh_cmd", "eval_cmd", "export_cmd"):
-        try:
-            module = __import__(f"recon.cli.{name}", fromlist=["command"])
-        except ModuleNotFoundError as e:
-            if e.name != f"recon.cli.{name}":
-                raise
-            continue  # a stage that does not exist yet does not appear
-        cli.add_command(module.command)
+    for command in (
+        sfm_cmd.sfm,
+        train_cmd.command,
+        render_cmd.command,
+        mesh_cmd.command,
+        eval_cmd.command,
+        export_cmd.command,
+        status_cmd.status,
+    ):
+        cli.add_command(command)
 
 
 _register_commands()

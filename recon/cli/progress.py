@@ -30,9 +30,15 @@ class Progress:
             from rich.progress import Progress as RichProgress
 
             self._rich = RichProgress(
-                TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TextColumn("ETA"),
-                TimeRemainingColumn(), transient=False, console=None,
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[info]}"),
+                TimeElapsedColumn(),
+                TextColumn("ETA"),
+                TimeRemainingColumn(),
+                transient=False,
+                console=None,
             )
             self._rich.__enter__()
         return self
@@ -59,8 +65,11 @@ class Progress:
         if finished or now - self._last.get(phase, -1e9) >= self.interval_s:
             self._last[phase] = now
             of = f"/{total}" if total is not None else ""
-            print(f"[{time.strftime('%H:%M:%S')}] {phase} {done}{of} {text}".rstrip(),
-                  file=sys.stderr, flush=True)
+            print(
+                f"[{time.strftime('%H:%M:%S')}] {phase} {done}{of} {text}".rstrip(),
+                file=sys.stderr,
+                flush=True,
+            )
 
     def log(self, message: str) -> None:
         if not self.enabled:

@@ -10,6 +10,8 @@ import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
 from recon.cli.progress import Progress
+from recon.options import config_field, config_option, field_help, from_options
+from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.scene_writer import SceneConfig
 from recon.sfm.sources import SourceError, read_colmap, read_transforms
 from recon.sfm.stage import write_sfm_stage
@@ -20,7 +22,7 @@ from recon.workspace import Workspace
 def new_or_existing_workspace(root: Path):
     """Open/create the workspace; if this command created it and then fails, remove it again,
     so a failed first command leaves the disk as it was."""
-    existed = (root / "workspace.json").exists()
+    existed = (root / Workspace.JSON_NAME).exists()
     root_existed = root.exists()
     ws = Workspace.create(root)
     try:
@@ -28,15 +30,16 @@ def new_or_existing_workspace(root: Path):
     except BaseException:
         if not existed:
             if root_existed:
-                (root / "workspace.json").unlink(missing_ok=True)
+                (root / Workspace.JSON_NAME).unlink(missing_ok=True)
                 shutil.rmtree(root / ".locks", ignore_errors=True)
             else:
                 shutil.rmtree(root, ignore_errors=True)
         raise
 
 
-def _photo_sfm(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress,
-               video) -> dict:
+def _photo_sfm(
+    images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress: Progress, video
+) -> dict:
     from recon.sfm.photo_stage import photos_to_workspace
 
     return photos_to_workspace(images, ws, cfg, options, progress, video)
@@ -55,11 +58,24 @@ def _video_config(images: Path, frames: int | None, fps: float | None, blur_rati
     if frames is not None and fps is not None:
         raise ValueError("give either --frames or --fps, not both")
     default = VideoConfig()
-    config = VideoConfig(frames=0 if fps is not None else default.frames if frames is None else frames,
-                         fps=0.0 if fps is None else fps,
-                         blur_ratio=default.blur_ratio if blur_ratio is None else blur_ratio)
+    config = VideoConfig(
+        frames=0 if fps is not None else default.frames if frames is None else frames,
+        fps=0.0 if fps is None else fps,
+        blur_ratio=default.blur_ratio if blur_ratio is None else blur_ratio,
+    )
     validate_video_config(config)
     return config
+
+
+def _video_option(name: str, **kwargs):
+    """A `VideoConfig` flag whose default is None ("not given": a flag without a video in the
+    input is an error, and --frames and --fps exclude each other); help and the default it
+    stands for come from the config."""
+    from recon.sfm.video import VideoConfig
+
+    field = config_field(VideoConfig, name)
+    help_ = f"Video: {field.metadata['help']} [default: {field.default}]"
+    return click.option("--" + name.replace("_", "-"), name, default=None, help=help_, **kwargs)
 
 
 def _summary_line(report: dict, root: Path) -> str:
@@ -67,53 +83,68 @@ def _summary_line(report: dict, root: Path) -> str:
     video = report.get("video")
     if video:
         n = video["videos_given"]
-        line += (f"; {n} video{'s' if n > 1 else ''}: {video['frames_decoded']} frames decoded, "
-                 f"{video['frames_chosen']} extracted (sharpest per window), "
-                 f"{video['frames_kept']} kept ({video['frames_blurred']} too blurred)")
+        line += (
+            f"; {n} video{'s' if n > 1 else ''}: {video['frames_decoded']} frames decoded, "
+            f"{video['frames_chosen']} extracted (sharpest per window), "
+            f"{video['frames_kept']} kept ({video['frames_blurred']} too blurred)"
+        )
     return line
 
 
 @click.command()
 @click.argument("images", metavar="[PHOTOS|VIDEO]", required=False, type=click.Path(path_type=Path))
 @workspace_option
-@click.option("--from-transforms", "transforms", type=click.Path(path_type=Path),
-              help="Known poses: a transforms*.json (nerfstudio / instant-ngp / Blender) or a folder "
-                   "with transforms_{train,val,test}.json (its split is kept).")
-@click.option("--from-colmap", "colmap_dir", type=click.Path(path_type=Path),
-              help="Known poses: a COLMAP sparse model folder (text or binary).")
-@click.option("--images", "colmap_images", type=click.Path(path_type=Path),
-              help="With --from-colmap: the images folder (default: next to the model).")
-@click.option("--downscale", default=1, show_default=True, type=click.IntRange(1, 64),
-              help="Integer downscale factor (area resampling; intrinsics scaled exactly).")
-@click.option("--background", type=click.Choice(["auto", "white", "black"]), default="auto",
-              show_default=True, help="Colour that transparent pixels are composited on (auto: white).")
-@click.option("--scene", "scene_kind", type=click.Choice(["auto", "bounded", "unbounded"]), default="auto",
-              show_default=True, help="Bounded object (box) or unbounded capture (contraction); "
-                                      "auto: bounded when the images have alpha.")
-@click.option("--holdout-every", default=8, show_default=True, type=click.IntRange(2, 1000),
-              help="Every N-th image is held out for testing unless the dataset has a split.")
-@click.option("--max-image-size", default=None, type=int, help="Photos: SIFT works on images resized to this.")
-@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default="auto",
-              show_default=True, help="Photos: feature matcher (auto: exhaustive for small sets).")
-@click.option("--mapper", type=click.Choice(["incremental", "global"]), default="incremental",
-              show_default=True, help="Photos: mapper.")
-@click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True,
-              help="Photos: COLMAP camera model (SIMPLE_RADIAL, OPENCV, PINHOLE, ...).")
-@click.option("--single-camera/--multi-camera", default=True, show_default=True,
-              help="Photos: one shared camera (one device) or one per image.")
-@click.option("--seed", default=0, show_default=True, help="Photos: random seed.")
-@click.option("--frames", "frames", type=int, default=None,
-              help="Video: about this many frames in all, evenly over the video(s) [default: 100].")
-@click.option("--fps", "fps", type=float, default=None,
-              help="Video: instead of --frames, this many frames per second of video.")
-@click.option("--blur-ratio", "blur_ratio", type=float, default=None,
-              help="Video: drop a window's sharpest frame if its sharpness is under this x the "
-                   "median over all windows' sharpest [default: 0.35; 0 keeps all].")
+@click.option(
+    "--from-transforms",
+    "transforms",
+    type=click.Path(path_type=Path),
+    help="Known poses: a transforms*.json (nerfstudio / instant-ngp / Blender) or a folder "
+    "with transforms_{train,val,test}.json (its split is kept).",
+)
+@click.option(
+    "--from-colmap",
+    "colmap_dir",
+    type=click.Path(path_type=Path),
+    help="Known poses: a COLMAP sparse model folder (text or binary).",
+)
+@click.option(
+    "--images",
+    "colmap_images",
+    type=click.Path(path_type=Path),
+    help="With --from-colmap: the images folder (default: next to the model).",
+)
+@config_option(SceneConfig, "downscale", type=click.IntRange(1, 64))
+@config_option(SceneConfig, "background")
+@config_option(SceneConfig, "scene")
+@config_option(SceneConfig, "holdout_every", type=click.IntRange(2, 1000))
+@config_option(SfmConfig, "max_image_size", type=click.IntRange(64))
+@config_option(SfmConfig, "max_num_features", type=click.IntRange(64))
+@config_option(SfmConfig, "matcher")
+@config_option(SfmConfig, "mapper")
+@config_option(SfmConfig, "camera_model")
+@config_option(SfmConfig, "single_camera", "--single-camera/--multi-camera")
+@config_option(SfmConfig, "try_harder")
+@config_option(SfmConfig, "min_image_side", type=click.IntRange(1))
+@config_option(SfmConfig, "seed")
+@config_option(SfmConfig, "num_threads")
+@_video_option("frames", type=int)
+@_video_option("fps", type=float)
+@_video_option("blur_ratio", type=float)
 @json_option
 @click.pass_context
-def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale, background,
-        scene_kind, holdout_every, max_image_size, matcher, mapper, camera_model, single_camera,
-        seed, frames, fps, blur_ratio, as_json):
+def sfm(
+    ctx,
+    images,
+    workspace,
+    transforms,
+    colmap_dir,
+    colmap_images,
+    frames,
+    fps,
+    blur_ratio,
+    as_json,
+    **options,
+):
     """Camera poses and sparse points -> WS/sfm/ (COLMAP model, cameras.json, points.ply, report).
 
     \b
@@ -125,17 +156,18 @@ def sfm(ctx, images, workspace, transforms, colmap_dir, colmap_images, downscale
     sources = [x for x in (images, transforms, colmap_dir) if x is not None]
     if len(sources) != 1:
         raise click.UsageError("give exactly one of IMAGES, --from-transforms, --from-colmap")
-    cfg = SceneConfig(downscale=downscale, background=background, scene=scene_kind,
-                      holdout_every=holdout_every)
+    cfg = from_options(SceneConfig, options)
+    holdout_every = cfg.holdout_every
     root = Path(workspace)
     with Progress(enabled=not as_json) as progress:
         if images is not None:
             if not images.exists():
                 raise SourceError(f"photo folder or video {images} does not exist")
             video = _video_config(images, frames, fps, blur_ratio)
-            options = {"max_image_size": max_image_size, "matcher": matcher, "mapper": mapper,
-                       "camera_model": camera_model, "single_camera": single_camera, "seed": seed,
-                       "verbose": ctx.obj["verbose"]}
+            options = {
+                **{k: v for k, v in options.items() if k in field_help(SfmConfig)},
+                "verbose": ctx.obj["verbose"],
+            }
             with new_or_existing_workspace(root) as ws:
                 report = _photo_sfm(images, ws, cfg, options, progress, video)
         else:

@@ -1,3 +1,3 @@
 """Stage 5, `recon eval`: image, geometry, pose and speed metrics per run, and one report
-comparing every run of the workspace (seed, "The evaluation-metric trap": PSNR and geometry
-side by side)."""
+comparing every run of the workspace (PSNR says little about geometry,
+so both are reported side by side)."""

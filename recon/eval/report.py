@@ -23,38 +23,65 @@ def _size(wh) -> str:
 
 
 def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
-    rows = [("| run | method | trained at | steps | train s | eval at | PSNR | border PSNR | SSIM | LPIPS | "
-             "t→25 dB s | render ms | params | peak MB | Chamfer | F-score | depth absrel |"),
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        (
+            "| run | method | trained at | steps | train s | eval at | PSNR | border PSNR | SSIM | LPIPS | "
+            "t→25 dB s | render ms | params | peak MB | Chamfer | F-score | depth absrel |"
+        ),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for run, m in sorted(metrics.items()):
         sp, geo, mean = m.get("speed", {}), m.get("geometry", {}), m.get("mean", {})
-        rows.append("| " + " | ".join([
-            run, m.get("method", ""), _size(sp.get("trained_at")), _fmt(sp.get("steps")),
-            _fmt(sp.get("train_wall_s"), 1), _size(m.get("resolution")),
-            _fmt(mean.get("psnr")), _fmt(mean.get("psnr_border")), _fmt(mean.get("ssim"), 4),
-            _fmt(mean.get("lpips"), 4),
-            _fmt((sp.get("time_to_psnr_s") or {}).get("25"), 1), _fmt(m.get("render_ms_per_frame"), 1),
-            _fmt(int(sp["parameters"]) if sp.get("parameters") else None), _fmt(sp.get("peak_rss_mb"), 0),
-            _fmt(geo.get("chamfer"), 5) if geo.get("status") == "ok" else "–",
-            _fmt(geo.get("fscore"), 3) if geo.get("status") == "ok" else "–",
-            _fmt(mean.get("depth_abs_rel"), 4),
-        ]) + " |")
+        rows.append(
+            "| "
+            + " | ".join(
+                [
+                    run,
+                    m.get("method", ""),
+                    _size(sp.get("trained_at")),
+                    _fmt(sp.get("steps")),
+                    _fmt(sp.get("train_wall_s"), 1),
+                    _size(m.get("resolution")),
+                    _fmt(mean.get("psnr")),
+                    _fmt(mean.get("psnr_border")),
+                    _fmt(mean.get("ssim"), 4),
+                    _fmt(mean.get("lpips"), 4),
+                    _fmt((sp.get("time_to_psnr_s") or {}).get("25"), 1),
+                    _fmt(m.get("render_ms_per_frame"), 1),
+                    _fmt(int(sp["parameters"]) if sp.get("parameters") else None),
+                    _fmt(sp.get("peak_rss_mb"), 0),
+                    _fmt(geo.get("chamfer"), 5) if geo.get("status") == "ok" else "–",
+                    _fmt(geo.get("fscore"), 3) if geo.get("status") == "ok" else "–",
+                    _fmt(mean.get("depth_abs_rel"), 4),
+                ]
+            )
+            + " |"
+        )
     any_m = next(iter(metrics.values()), {})
     notes = [
-        (f"- Image metrics on the held-out `{any_m.get('split', 'test')}` views at the size in 'eval at' "
-         "(the photos area-downsampled to it; renders of a finer-trained run too); "
-         f"{any_m.get('lpips_network', '')}. Border PSNR: the outer "
-         f"{100 * any_m.get('border_fraction', 0.15):.0f} % of each side, where a capture's far background shows."),
+        (
+            f"- Image metrics on the held-out `{any_m.get('split', 'test')}` views at the size in 'eval at' "
+            "(the photos area-downsampled to it; renders of a finer-trained run too); "
+            f"{any_m.get('lpips_network', '')}. Border PSNR: the outer "
+            f"{100 * any_m.get('border_fraction', 0.15):.0f} % of each side, where a capture's far background shows."
+        ),
         "- Geometry (Chamfer, F-score at τ) in the original scene units against the ground truth, when given.",
         "- PSNR certifies interpolation between the cameras, not geometry: read both columns.",
     ]
     pose = any_m.get("pose", {})
     if pose.get("status") == "ok":
-        notes.append(f"- SfM poses vs reference ({pose['matched']} images): median rotation error "
-                     f"{pose['median_rotation_error_deg']:.3f}°, median centre error "
-                     f"{pose['median_center_error_pct']:.3f} % of the diagonal.")
-    text = "# recon report\n\n" + "\n".join(rows) + "\n\n" + "\n".join(notes) + \
-        "\n\n![speed vs error](speed_vs_error.png)\n"
+        notes.append(
+            f"- SfM poses vs reference ({pose['matched']} images): median rotation error "
+            f"{pose['median_rotation_error_deg']:.3f}°, median centre error "
+            f"{pose['median_center_error_pct']:.3f} % of the diagonal."
+        )
+    text = (
+        "# recon report\n\n"
+        + "\n".join(rows)
+        + "\n\n"
+        + "\n".join(notes)
+        + "\n\n![speed vs error](speed_vs_error.png)\n"
+    )
     atomic_write_text(ws.report_md, text)
     plot_speed_vs_error(ws, list(metrics))
 

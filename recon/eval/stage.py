@@ -17,33 +17,50 @@ from recon.eval.report import write_report
 from recon.eval.speed import read_log, speed_metrics
 from recon.io.exr import read_depth_exr
 from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
+from recon.models.registry import pick_device
+from recon.options import opt
 from recon.render.views import render_view
 from recon.train.resolution import output_levels
-from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+from recon.workspace.runs import load_run
 from recon.workspace.scene import level_size
 
 
 @dataclass(frozen=True)
 class EvalConfig:
-    split: str = "test"  # held-out split
-    every: int = 1  # evaluate every N-th view of the split (lego-200 protocol: 8)
-    gt_mesh: str = ""  # ground-truth mesh (original units); default: the dataset's, if it has one
-    gt_points: str = ""  # ground-truth point cloud (original units), instead of a mesh
-    tau: float = 0.0  # F-score threshold in original units (0 = 1 % of the GT bounding-box diagonal)
-    gt_poses: str = ""  # reference poses (transforms.json or COLMAP model) for sfm pose accuracy
-    lpips: bool = True  # compute LPIPS when its weights are available
-    max_side: int = 0  # evaluate at the pyramid level whose longer side fits N px (0 = the run's training level)
-    downscale: int = 0  # evaluate at the sfm images downscaled by K (0 = the run's training level)
-    border: float = 0.15  # PSNR is also reported on the outer band of this fraction of each side
-    device: str = "auto"  # auto | cpu | cuda
+    split: str = opt("test", "held-out split")
+    every: int = opt(1, "evaluate every N-th view of the split (lego-200 protocol: 8)")
+    gt_mesh: str = opt(
+        "", "ground-truth mesh (original units); default: the dataset's, if it has one"
+    )
+    gt_points: str = opt("", "ground-truth point cloud (original units), instead of a mesh")
+    tau: float = opt(
+        0.0, "F-score threshold in original units (0 = 1 % of the GT bounding-box diagonal)"
+    )
+    gt_poses: str = opt(
+        "", "reference poses (transforms.json or COLMAP model) for sfm pose accuracy"
+    )
+    lpips: bool = opt(True, "compute LPIPS when its weights are available")
+    max_side: int = opt(
+        0,
+        "evaluate at the pyramid level whose longer side fits N px (0 = the run's training level)",
+    )
+    downscale: int = opt(
+        0, "evaluate at the sfm images downscaled by K (0 = the run's training level)"
+    )
+    border: float = opt(
+        0.15, "PSNR is also reported on the outer band of this fraction of each side"
+    )
+    device: str = opt(
+        "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
+    )
 
 
 def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model) -> dict:
     from recon.metrics.lpips import lpips
     from recon.workspace.scene import load_images
 
-    model, scene, run_doc = load_model(ws, run, device)
+    model, scene, run_doc = load_run(ws, run, device)
     idx = scene.split(cfg.split)[:: cfg.every]
     if not idx:
         raise WorkspaceError(f"the scene has no '{cfg.split}' views to evaluate")
@@ -58,8 +75,11 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
         out = render_view(model, cams[i], out_w, out_h)
         times.append(time.perf_counter() - t0)
         pred = out["rgb"].clamp(0, 1)
-        m = {"psnr": float(psnr(pred, gts[i])), "ssim": float(ssim(pred, gts[i])),
-             "psnr_border": float(psnr_masked(pred, gts[i], band))}
+        m = {
+            "psnr": float(psnr(pred, gts[i])),
+            "ssim": float(ssim(pred, gts[i])),
+            "psnr_border": float(psnr_masked(pred, gts[i], band)),
+        }
         if lpips_model is not None:
             m["lpips"] = float(lpips(pred, gts[i], lpips_model))
         gt_depth_path = scene.frames[fi].get("depth_gt")
@@ -69,18 +89,26 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
             gt_d = cv2.resize(gt_d, (w, h), interpolation=cv2.INTER_NEAREST)
             pred_d = scene.depth_to_world_units(out["depth"].cpu().numpy())
             pred_d = np.where(out["acc"].cpu().numpy() > 0.5, pred_d, 0.0)
-            errs = depth_errors(torch.from_numpy(pred_d), torch.from_numpy(gt_d),
-                                torch.from_numpy((pred_d > 0) & (gt_d > 0)))
+            errs = depth_errors(
+                torch.from_numpy(pred_d),
+                torch.from_numpy(gt_d),
+                torch.from_numpy((pred_d > 0) & (gt_d > 0)),
+            )
             m.update({f"depth_{k}": v for k, v in errs.items() if k != "count"})
         per_view[scene.frames[fi]["name"]] = m
     keys = sorted({k for v in per_view.values() for k in v})
     mean = {k: float(np.nanmean([v[k] for v in per_view.values() if k in v])) for k in keys}
     sfm_size = scene.image_size("train")
-    return {"per_view": per_view, "mean": mean, "views": len(idx),
-            "render_ms_per_frame": round(1000 * float(np.median(times)), 2),
-            "resolution": [int(out_w), int(out_h)], "downscale": k_out,
-            "rendered_at": {"downscale": k_render, "size": list(level_size(*sfm_size, k_render))},
-            "border_fraction": cfg.border}
+    return {
+        "per_view": per_view,
+        "mean": mean,
+        "views": len(idx),
+        "render_ms_per_frame": round(1000 * float(np.median(times)), 2),
+        "resolution": [int(out_w), int(out_h)],
+        "downscale": k_out,
+        "rendered_at": {"downscale": k_render, "size": list(level_size(*sfm_size, k_render))},
+        "border_fraction": cfg.border,
+    }
 
 
 def observed_fn(scene, tol: float):
@@ -93,15 +121,27 @@ def observed_fn(scene, tol: float):
     sim = scene.scene_from_world
     scene_from_orig = np.eye(4)
     scene_from_orig[:3, :3], scene_from_orig[:3, 3] = sim.scale * sim.R, sim.t
-    orig_from_scene_units = np.diag([1 / sim.scale] * 3 + [1.0])  # camera frame back to original units
-    mats = np.stack([orig_from_scene_units @ np.asarray(f["cam_from_world"]) @ scene_from_orig for f in frames])
+    orig_from_scene_units = np.diag(
+        [1 / sim.scale] * 3 + [1.0]
+    )  # camera frame back to original units
+    mats = np.stack(
+        [orig_from_scene_units @ np.asarray(f["cam_from_world"]) @ scene_from_orig for f in frames]
+    )
     Ks = np.array([[[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1.0]] for f in frames])
-    depths = [cv2.resize(read_depth_exr(f["depth_gt"]), (f["width"], f["height"]), interpolation=cv2.INTER_NEAREST)
-              for f in frames]
+    depths = [
+        cv2.resize(
+            read_depth_exr(f["depth_gt"]),
+            (f["width"], f["height"]),
+            interpolation=cv2.INTER_NEAREST,
+        )
+        for f in frames
+    ]
     return lambda points: observed_by_depth(points, mats, Ks, depths, tol)
 
 
-def geometry_section(ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: str | None, scene=None) -> dict:
+def geometry_section(
+    ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: str | None, scene=None
+) -> dict:
     import trimesh
 
     from recon.metrics.geometry import geometry_metrics
@@ -112,16 +152,23 @@ def geometry_section(ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: st
     meshes = sorted(ws.mesh_dir(run).glob("mesh.*")) if ws.mesh_dir(run).exists() else []
     meshes = [m for m in meshes if m.suffix in (".ply", ".obj", ".glb")]
     if not meshes:
-        return {"status": f"no mesh for run '{run}': run `recon mesh -w {ws.root} --run {run}` first",
-                "gt": str(gt_path)}
+        return {
+            "status": f"no mesh for run '{run}': run `recon mesh -w {ws.root} --run {run}` first",
+            "gt": str(gt_path),
+        }
     gt = trimesh.load(str(gt_path), process=False, force=None)
     pred = trimesh.load(str(meshes[0]), process=False, force="mesh")
     diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
     tau = cfg.tau or 0.01 * diag
     observed = observed_fn(scene, tau) if scene is not None and not cfg.gt_points else None
     m = geometry_metrics(pred, gt, tau, gt_observed_fn=observed)
-    return {"status": "ok", "gt": str(gt_path), "mesh": str(meshes[0]), "tau": tau,
-            **{k: float(v) for k, v in m.items() if np.isscalar(v)}}
+    return {
+        "status": "ok",
+        "gt": str(gt_path),
+        "mesh": str(meshes[0]),
+        "tau": tau,
+        **{k: float(v) for k, v in m.items() if np.isscalar(v)},
+    }
 
 
 def pose_section(ws: Workspace, cfg: EvalConfig) -> dict:
@@ -132,21 +179,27 @@ def pose_section(ws: Workspace, cfg: EvalConfig) -> dict:
     return sfm_pose_accuracy(ws, Path(cfg.gt_poses))
 
 
-def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = False, progress=None) -> dict:
+def evaluate(
+    ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = False, progress=None
+) -> dict:
     from recon.metrics.lpips import NETWORK, load_lpips
     from recon.workspace.scene import load_scene
 
-    runs = runs or [r for r in ws.runs() if model_path(ws, r).exists()]
+    runs = runs or [r for r in ws.runs() if ws.model_path(r).exists()]
     if not runs and cfg.gt_poses:  # the sfm stage alone: pose accuracy, before any training
         poses = pose_section(ws, cfg)
-        atomic_write_json(ws.sfm_dir / "pose_accuracy.json", poses)
+        atomic_write_json(ws.pose_accuracy_json, poses)
         return {"sfm": {"pose": poses}}
     if not runs:
-        raise WorkspaceError(f"no trained run in {ws.root}: run `recon train` first "
-                             "(or pass --gt-poses to evaluate the sfm poses alone)")
+        raise WorkspaceError(
+            f"no trained run in {ws.root}: run `recon train` first "
+            "(or pass --gt-poses to evaluate the sfm poses alone)"
+        )
     device = pick_device(cfg.device)
     lpips_model = load_lpips(device) if cfg.lpips else None
-    lpips_note = NETWORK if lpips_model is not None else "LPIPS unavailable (weights could not be obtained)"
+    lpips_note = (
+        NETWORK if lpips_model is not None else "LPIPS unavailable (weights could not be obtained)"
+    )
     scene = load_scene(ws, with_points=False)
     poses = pose_section(ws, cfg)
     results = {}
@@ -154,15 +207,27 @@ def evaluate(ws: Workspace, runs: list[str], cfg: EvalConfig, force: bool = Fals
         ws.require_fresh(f"train/{run}", force)
         started = time.time()
         run_doc, log = _run_doc(ws, run), read_log(ws.log_jsonl(run))
-        metrics = {"run": run, "method": run_doc["method"], "split": cfg.split, "lpips_network": lpips_note,
-                   **image_metrics(ws, run, cfg, device, lpips_model),
-                   "geometry": geometry_section(ws, run, cfg, scene.gt_mesh, scene),
-                   "pose": poses, "speed": speed_metrics(run_doc, log)}
+        metrics = {
+            "run": run,
+            "method": run_doc["method"],
+            "split": cfg.split,
+            "lpips_network": lpips_note,
+            **image_metrics(ws, run, cfg, device, lpips_model),
+            "geometry": geometry_section(ws, run, cfg, scene.gt_mesh, scene),
+            "pose": poses,
+            "speed": speed_metrics(run_doc, log),
+        }
         metrics = _finite(metrics)
-        atomic_write_json(ws.eval_dir(run) / "metrics.json", metrics)
-        ws.record_stage(f"eval/{run}", config=asdict(cfg), inputs={"model": model_path(ws, run)},
-                        outputs={"metrics": ws.eval_dir(run) / "metrics.json"}, upstream=[f"train/{run}"],
-                        started=started, ended=time.time())
+        atomic_write_json(ws.metrics_json(run), metrics)
+        ws.record_stage(
+            f"eval/{run}",
+            config=asdict(cfg),
+            inputs={"model": ws.model_path(run)},
+            outputs={"metrics": ws.metrics_json(run)},
+            upstream=[f"train/{run}"],
+            started=started,
+            ended=time.time(),
+        )
         results[run] = metrics
         if progress:
             progress("eval", k + 1, len(runs), run=run, psnr=round(metrics["mean"]["psnr"], 2))
@@ -180,7 +245,7 @@ def _run_doc(ws: Workspace, run: str) -> dict:
 def _load_metrics(ws: Workspace, run: str) -> dict | None:
     import json
 
-    p = ws.eval_dir(run) / "metrics.json"
+    p = ws.metrics_json(run)
     return json.loads(p.read_text()) if p.exists() else None
 
 

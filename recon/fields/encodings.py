@@ -1,4 +1,4 @@
-"""Fixed input encodings (seed, "Coordinate MLPs and the need for positional encoding")."""
+"""Fixed input encodings (Mildenhall et al. 2020, eq. 4; Tancik et al. 2020)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from torch import Tensor
 
 def positional_encoding(x: Tensor, num_bands: int = 10, include_input: bool = True) -> Tensor:
     """gamma(x) = [x, sin(b_0 x), .., sin(b_{L-1} x), cos(b_0 x), .., cos(b_{L-1} x)] per
-    coordinate, b_j = 2^j pi, exactly the seed's layout: x (..., D) -> (..., D + 2 D L).
+    coordinate, b_j = 2^j pi, the identity first, then sin/cos per frequency: x (..., D) -> (..., D + 2 D L).
 
     The raw input comes first, then for each coordinate its L sines followed by its L cosines.
     Seed Problem 2: L = 10 in 3D gives 3 + 3 * 2 * 10 = 63 dims; L = 4 directions give 27.

@@ -1,4 +1,4 @@
-"""Multiresolution hash encoding (seed, "Instant-NGP and the multiresolution hash grid").
+"""Multiresolution hash encoding (Müller et al. 2022, Sec. 3).
 
 L levels with resolutions N_l = floor(N_min b^l), b = exp((ln N_max - ln N_min) / (L - 1)).
 Level l is a grid of (N_l + 1)^3 vertices over the unit cube, each holding F features. A level
@@ -30,7 +30,7 @@ PRIMES = (1, 2654435761, 805459861)
 
 
 def growth_factor(n_levels: int, n_min: int, n_max: int) -> float:
-    """b = exp((ln N_max - ln N_min) / (L - 1)); seed Problem 4: (16, 16, 2048) -> 1.3819."""
+    """b = exp((ln N_max - ln N_min) / (L - 1)); worked example (Müller et al. 2022, eq. 3): (16, 16, 2048) -> 1.3819."""
     if n_levels == 1:
         return 1.0
     return math.exp((math.log(n_max) - math.log(n_min)) / (n_levels - 1))
@@ -152,9 +152,9 @@ def _hash_kernel(x, table, feats, res, resf, size, dense, offset, backward):  # 
 
 
 def _layout_arrays(layout: dict[str, list[int]]) -> tuple[np.ndarray, ...]:
-    return tuple(np.asarray(layout[k], dtype=np.int64) for k in ("resolution", "size", "offset")) + (
-        np.asarray(layout["dense"], dtype=np.bool_),
-    )
+    return tuple(
+        np.asarray(layout[k], dtype=np.int64) for k in ("resolution", "size", "offset")
+    ) + (np.asarray(layout["dense"], dtype=np.bool_),)
 
 
 class _HashEncodeCPU(torch.autograd.Function):
@@ -178,7 +178,9 @@ class _HashEncodeCPU(torch.autograd.Function):
         res, size, offset, dense = _layout_arrays(ctx.layout)
         grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype)
         L, F = len(res), ctx.table_shape[1]
-        g = grad_out.reshape(grad_out.shape[0], L, F).permute(1, 0, 2).contiguous().numpy()  # (L, N, F)
+        g = (
+            grad_out.reshape(grad_out.shape[0], L, F).permute(1, 0, 2).contiguous().numpy()
+        )  # (L, N, F)
         resf = res.astype(xs.numpy().dtype)
         _hash_kernel(xs.numpy(), grad_table.numpy(), g, res, resf, size, dense, offset, True)
         return None, grad_table, None
@@ -199,8 +201,14 @@ class HashGrid(nn.Module):
     """Learnable multiresolution hash encoding: one flat table (total_entries, F) of features
     initialised U(-1e-4, 1e-4) as in Instant-NGP. forward: (N, 3) in [0, 1]^3 -> (N, L F)."""
 
-    def __init__(self, n_levels: int = 16, n_features: int = 2, log2_table_size: int = 19,
-                 n_min: int = 16, n_max: int = 2048):
+    def __init__(
+        self,
+        n_levels: int = 16,
+        n_features: int = 2,
+        log2_table_size: int = 19,
+        n_min: int = 16,
+        n_max: int = 2048,
+    ):
         super().__init__()
         self.layout = level_layout(n_levels, n_min, n_max, 2**log2_table_size)
         entries = sum(self.layout["size"])

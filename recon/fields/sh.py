@@ -1,5 +1,5 @@
-"""Real spherical harmonics up to degree 3 (seed, "View-dependent color with spherical
-harmonics"), in the ordering and sign convention of the 3DGS reference implementation so
+"""Real spherical harmonics up to degree 3 (Sloan 2008, "Stupid
+Spherical Harmonics Tricks"; as used by Yu et al. 2021 and Kerbl et al. 2023), in the ordering and sign convention of the 3DGS reference implementation so
 that splat PLY files interoperate."""
 
 from __future__ import annotations
@@ -9,10 +9,22 @@ from torch import Tensor
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-      0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+C2 = (
+    1.0925484305920792,
+    -1.0925484305920792,
+    0.31539156525252005,
+    -1.0925484305920792,
+    0.5462742152960396,
+)
+C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 def num_sh_bases(degree: int) -> int:

@@ -101,4 +101,3 @@ def trilinear_gather(data: Tensor, rows: Tensor, w: Tensor) -> Tensor:
         return TrilinearGather.apply(data, rows, w)
     valid = (rows >= 0).to(w.dtype)
     return (data[rows.clamp_min(0)] * (w * valid)[..., None]).sum(dim=1)
-

@@ -1,4 +1,4 @@
-"""A sparse voxel grid (Plenoxels, seed "Plenoxels and DVGO"): values live on the vertices of a
+"""A sparse voxel grid (Plenoxels, Fridovich-Keil et al. 2022, Sec. 3): values live on the vertices of a
 res^3 lattice over the unit cube, stored only where `links` points at a data row; the field
 at x is the trilinear interpolation of its 8 surrounding vertices (pruned vertices count as 0).
 
@@ -51,8 +51,12 @@ class SparseVoxelGrid(nn.Module):
         n = res**3
         self.register_buffer("links", torch.arange(n))
         self.register_buffer("coords", torch.arange(n))
-        self.data = nn.ParameterDict({k: nn.Parameter(torch.full((n, c), float(init.get(k, 0.0))))
-                                      for k, c in channels.items()})
+        self.data = nn.ParameterDict(
+            {
+                k: nn.Parameter(torch.full((n, c), float(init.get(k, 0.0))))
+                for k, c in channels.items()
+            }
+        )
 
     @property
     def num_rows(self) -> int:
@@ -63,7 +67,10 @@ class SparseVoxelGrid(nn.Module):
         if x_unit.device.type != "cpu" or x_unit.dtype not in (torch.float32, torch.float64):
             return self.query_reference(x_unit, names)
         rows, w = corners(x_unit, self.res, self.links)
-        return {name: trilinear_gather(self.data[name], rows, w) for name in names or list(self.data.keys())}
+        return {
+            name: trilinear_gather(self.data[name], rows, w)
+            for name in names or list(self.data.keys())
+        }
 
     def query_reference(self, x_unit: Tensor, names: list[str] | None = None) -> dict[str, Tensor]:
         """The slow twin of `query`: torch gather, autograd backward."""
@@ -71,7 +78,10 @@ class SparseVoxelGrid(nn.Module):
         rows = self.links[idx]
         w = w * (rows >= 0).to(w.dtype)
         rows = rows.clamp_min(0)
-        return {name: (self.data[name][rows] * w[..., None]).sum(dim=1) for name in names or list(self.data.keys())}
+        return {
+            name: (self.data[name][rows] * w[..., None]).sum(dim=1)
+            for name in names or list(self.data.keys())
+        }
 
     @torch.no_grad()
     def dense(self, name: str, fill: float = 0.0) -> Tensor:
@@ -82,7 +92,9 @@ class SparseVoxelGrid(nn.Module):
         return out.view(self.res, self.res, self.res, C)
 
     @torch.no_grad()
-    def set_rows(self, keep_flat: Tensor, values: dict[str, Tensor], res: int | None = None) -> None:
+    def set_rows(
+        self, keep_flat: Tensor, values: dict[str, Tensor], res: int | None = None
+    ) -> None:
         """Replace the grid: linked vertices `keep_flat` (M,) with data {name: (M, C)}."""
         self.res = res or self.res
         links = torch.full((self.res**3,), -1, dtype=torch.long, device=keep_flat.device)
@@ -100,23 +112,33 @@ class SparseVoxelGrid(nn.Module):
         old[self.coords] = 1.0
         mask = keep_mask_fn(old.view(self.res, self.res, self.res).bool()).float()
         mask = F.max_pool3d(mask[None, None], 3, stride=1, padding=1)
-        fine = F.interpolate(mask, size=(new_res,) * 3, mode="trilinear", align_corners=True)[0, 0] > 0
+        fine = (
+            F.interpolate(mask, size=(new_res,) * 3, mode="trilinear", align_corners=True)[0, 0] > 0
+        )
         flat = fine.reshape(-1).nonzero()[:, 0]
-        ijk = torch.stack([flat % new_res, (flat // new_res) % new_res, flat // (new_res * new_res)], -1)
+        ijk = torch.stack(
+            [flat % new_res, (flat // new_res) % new_res, flat // (new_res * new_res)], -1
+        )
         x = ijk.to(torch.float32) / (new_res - 1)
-        values = {n: torch.cat([self.query(c, [n])[n] for c in x.split(1 << 18)]) for n in self.data}
+        values = {
+            n: torch.cat([self.query(c, [n])[n] for c in x.split(1 << 18)]) for n in self.data
+        }
         self.set_rows(flat, values, new_res)
 
     @torch.no_grad()
     def prune(self, keep_rows: Tensor) -> None:
         """Keep only the data rows where `keep_rows` (M,) is True."""
-        self.set_rows(self.coords[keep_rows], {n: p.detach()[keep_rows] for n, p in self.data.items()})
+        self.set_rows(
+            self.coords[keep_rows], {n: p.detach()[keep_rows] for n, p in self.data.items()}
+        )
 
     def neighbour_pairs(self, rows: Tensor) -> tuple[Tensor, Tensor]:
         """For data rows (K,), the rows of their +x, +y, +z neighbours where both are linked.
         Returns (a, b) (P,) row pairs for finite differences (total variation)."""
         flat = self.coords[rows]
-        ijk = torch.stack([flat % self.res, (flat // self.res) % self.res, flat // (self.res**2)], -1)
+        ijk = torch.stack(
+            [flat % self.res, (flat // self.res) % self.res, flat // (self.res**2)], -1
+        )
         a_all, b_all = [], []
         for axis in range(3):
             ok = ijk[:, axis] < self.res - 1

@@ -1,2 +1,2 @@
-"""3D Gaussian splatting (seed, "3D Gaussian Splatting"): EWA projection, a tile rasterizer with
+"""3D Gaussian splatting (Kerbl et al. 2023): EWA projection, a tile rasterizer with
 a numba CPU fast path and a pure-torch twin, adaptive density control and splat PLY export."""

@@ -1,5 +1,4 @@
-"""Adaptive density control (Kerbl et al. 2023; seed, "Adaptive densification and why it hits
-real-time"), as a stateless strategy dataclass plus a state dict of accumulators (gsplat style).
+"""Adaptive density control (Kerbl et al. 2023, Sec. 5.2), as a stateless strategy dataclass plus a state dict of accumulators (gsplat style).
 
 Per step, for every Gaussian visible in the view, accumulate |dL/d mu'_ndc| (the 2D mean
 gradient in NDC units, dL/d mu'_px * (W/2, H/2), as the reference) and the largest screen
@@ -19,24 +18,25 @@ from torch import Tensor, nn
 
 from recon.gaussians.optim import append_rows, keep_rows, reset_rows
 from recon.gaussians.projection import rotation_from_quats
+from recon.options import opt
 
 RESET_OPACITY = 0.01  # opacity after a reset; Gaussians the views do not need fade below 0.005
 
 
 @dataclass(frozen=True)
 class DensifyStrategy:
-    grad_threshold: float = 0.0002  # mean NDC positional-gradient norm that triggers densify
-    dense_fraction: float = 0.01  # clone if max scale <= this x scene extent, else split
-    split_shrink: float = 1.6  # split children get scales / this (0.8 x 2 children)
-    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
-    prune_screen_fraction: float = 0.15  # prune if the screen radius passed this x max(W, H)
-    prune_world_fraction: float = 0.1  # prune if the max scale passed this x scene extent
-    start: int = 500  # first step that densifies
-    stop: int = 15000  # no densification or opacity reset from this step on
-    interval: int = 100  # densify every this many steps
-    reset_interval: int = 3000  # opacity reset every this many steps
-    max_gaussians: int = 10_000_000  # densification never grows the count beyond this
-    clone_opacity_correction: bool = False  # clone and original get 1 - sqrt(1 - o) each
+    grad_threshold: float = opt(0.0002, "mean NDC positional-gradient norm that triggers densify")
+    dense_fraction: float = opt(0.01, "clone if max scale <= this x scene extent, else split")
+    split_shrink: float = opt(1.6, "split children get scales / this (0.8 x 2 children)")
+    prune_opacity: float = opt(0.005, "prune Gaussians less opaque than this")
+    prune_screen_fraction: float = opt(0.15, "prune if the screen radius passed this x max(W, H)")
+    prune_world_fraction: float = opt(0.1, "prune if the max scale passed this x scene extent")
+    start: int = opt(500, "first step that densifies")
+    stop: int = opt(15000, "no densification or opacity reset from this step on")
+    interval: int = opt(100, "densify every this many steps")
+    reset_interval: int = opt(3000, "opacity reset every this many steps")
+    max_gaussians: int = opt(3_000_000, "densification never grows the count beyond this")
+    clone_opacity_correction: bool = opt(False, "clone and original get 1 - sqrt(1 - o) each")
 
 
 def init_state(n: int, device=None) -> dict[str, Tensor]:
@@ -46,8 +46,9 @@ def init_state(n: int, device=None) -> dict[str, Tensor]:
 
 
 @torch.no_grad()
-def accumulate(state: dict[str, Tensor], grad_means2d: Tensor, radii: Tensor, width: int,
-               height: int) -> None:
+def accumulate(
+    state: dict[str, Tensor], grad_means2d: Tensor, radii: Tensor, width: int, height: int
+) -> None:
     """In place: for visible Gaussians (radius > 0) add |dL/dmu'_px * (W/2, H/2)|, count one
     visible step and track max radius / max(W, H). grad_means2d (G, 2), radii (G,)."""
     visible = radii > 0
@@ -69,8 +70,9 @@ def _candidates(strategy: DensifyStrategy, state: dict[str, Tensor], n: int) -> 
     return chosen
 
 
-def _split_children(params: nn.ParameterDict, split: Tensor, shrink: float,
-                    generator: torch.Generator | None) -> dict[str, Tensor]:
+def _split_children(
+    params: nn.ParameterDict, split: Tensor, shrink: float, generator: torch.Generator | None
+) -> dict[str, Tensor]:
     """Two children per split Gaussian: mu + R (s * eps), eps ~ N(0, I); log-scales - log 1.6."""
     rows = {name: p.detach()[split].repeat(2, *([1] * (p.dim() - 1))) for name, p in params.items()}
     scales = torch.exp(rows["log_scales"])
@@ -82,10 +84,15 @@ def _split_children(params: nn.ParameterDict, split: Tensor, shrink: float,
 
 
 @torch.no_grad()
-def densify_and_prune(strategy: DensifyStrategy, params: nn.ParameterDict,
-                      optimizer: torch.optim.Adam, state: dict[str, Tensor], step: int,
-                      scene_extent: float, generator: torch.Generator | None = None,
-                      ) -> dict[str, int]:
+def densify_and_prune(
+    strategy: DensifyStrategy,
+    params: nn.ParameterDict,
+    optimizer: torch.optim.Adam,
+    state: dict[str, Tensor],
+    step: int,
+    scene_extent: float,
+    generator: torch.Generator | None = None,
+) -> dict[str, int]:
     """Clone, split and prune in place (parameters and Adam moments). Returns the counts."""
     n = params["means"].shape[0]
     chosen = _candidates(strategy, state, n)
@@ -105,16 +112,24 @@ def densify_and_prune(strategy: DensifyStrategy, params: nn.ParameterDict,
     drop = torch.cat([split, torch.zeros(n_new, dtype=torch.bool, device=split.device)])
     drop |= torch.sigmoid(params["opacity_logits"]) < strategy.prune_opacity
     if step + 1 > strategy.reset_interval:
-        too_big = torch.exp(params["log_scales"]).amax(-1) > strategy.prune_world_fraction * scene_extent
+        too_big = (
+            torch.exp(params["log_scales"]).amax(-1) > strategy.prune_world_fraction * scene_extent
+        )
         on_screen = torch.cat([state["radii"], state["radii"].new_zeros(n_new)])
         drop |= too_big | (on_screen > strategy.prune_screen_fraction)
     keep_rows(params, optimizer, ~drop)
     return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(drop.sum())}
 
 
-def post_step(strategy: DensifyStrategy, params: nn.ParameterDict, optimizer: torch.optim.Adam,
-              state: dict[str, Tensor], step: int, scene_extent: float,
-              generator: torch.Generator | None = None) -> dict[str, Tensor]:
+def post_step(
+    strategy: DensifyStrategy,
+    params: nn.ParameterDict,
+    optimizer: torch.optim.Adam,
+    state: dict[str, Tensor],
+    step: int,
+    scene_extent: float,
+    generator: torch.Generator | None = None,
+) -> dict[str, Tensor]:
     """The schedule, run after the optimizer step of 0-based `step` (the reference counts from
     1). Returns the state to use next: fresh accumulators whenever the count changed."""
     it = step + 1
@@ -125,6 +140,7 @@ def post_step(strategy: DensifyStrategy, params: nn.ParameterDict, optimizer: to
         state = init_state(params["means"].shape[0], params["means"].device)
     if it % strategy.reset_interval == 0:
         logit = torch.logit(torch.tensor(RESET_OPACITY)).item()
-        reset_rows(params, optimizer, "opacity_logits",
-                   params["opacity_logits"].detach().clamp_max(logit))
+        reset_rows(
+            params, optimizer, "opacity_logits", params["opacity_logits"].detach().clamp_max(logit)
+        )
     return state

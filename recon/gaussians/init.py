@@ -25,8 +25,9 @@ def knn_scales(points: np.ndarray, k: int = 3) -> np.ndarray:
     return np.sqrt(np.maximum((dist[:, 1:] ** 2).mean(1), MIN_SQ_DIST))
 
 
-def gaussians_from_points(points: Tensor, colors: Tensor, sh_degree: int,
-                          opacity: float) -> dict[str, Tensor]:
+def gaussians_from_points(
+    points: Tensor, colors: Tensor, sh_degree: int, opacity: float
+) -> dict[str, Tensor]:
     """points (N, 3), colors (N, 3) in [0, 1] -> means, quats, log_scales, opacity_logits,
     sh_dc (N, 1, 3), sh_rest (N, (degree+1)^2 - 1, 3), all float32 on the points' device."""
     n, device = points.shape[0], points.device
@@ -36,8 +37,9 @@ def gaussians_from_points(points: Tensor, colors: Tensor, sh_degree: int,
     return {
         "means": points.float().clone(),
         "quats": quats,
-        "log_scales": torch.log(torch.as_tensor(scales, dtype=torch.float32, device=device))[:, None]
-        .repeat(1, 3),
+        "log_scales": torch.log(torch.as_tensor(scales, dtype=torch.float32, device=device))[
+            :, None
+        ].repeat(1, 3),
         "opacity_logits": torch.full((n,), float(np.log(opacity / (1 - opacity))), device=device),
         "sh_dc": ((colors.float() - 0.5) / C0)[:, None, :].clone(),
         "sh_rest": torch.zeros(n, num_sh_bases(sh_degree) - 1, 3, device=device),
@@ -63,8 +65,11 @@ def initial_gaussians(config, scene) -> dict[str, Tensor]:
     """Gaussians for `config` (init, init_points, sh_degree, init_opacity, seed) and a SceneInfo."""
     if not uses_random_init(config, scene):
         points = scene.points.float().cpu()
-        colors = (scene.point_colors.float().cpu() if scene.point_colors is not None
-                  else torch.full_like(points, 0.5))
+        colors = (
+            scene.point_colors.float().cpu()
+            if scene.point_colors is not None
+            else torch.full_like(points, 0.5)
+        )
     else:
         points, colors = random_points(scene.aabb, config.init_points, config.seed)
     return gaussians_from_points(points, colors, config.sh_degree, config.init_opacity)
@@ -89,8 +94,16 @@ def image_colors(points: Tensor, images: Tensor, cameras) -> tuple[Tensor, Tenso
     return torch.nanmedian(samples, dim=0).values, seen.sum(0)
 
 
-def sample_in_hull(aabb: Tensor, n: int, images: Tensor, cameras, background: Tensor, seed: int,
-                   tolerance: float = 0.02, rounds: int = 20) -> tuple[Tensor, Tensor]:
+def sample_in_hull(
+    aabb: Tensor,
+    n: int,
+    images: Tensor,
+    cameras,
+    background: Tensor,
+    seed: int,
+    tolerance: float = 0.02,
+    rounds: int = 20,
+) -> tuple[Tensor, Tensor]:
     """Up to n uniform points of the box whose median colour over the views that see them is
     not the background (a visual hull, for captures composited on a plain background), with
     those colours. Where every view sees the object nothing is rejected, so on real captures
@@ -111,8 +124,16 @@ def sample_in_hull(aabb: Tensor, n: int, images: Tensor, cameras, background: Te
     return torch.cat(kept_p)[:n], torch.cat(kept_c)[:n].clamp(0, 1)
 
 
-def sample_in_shell(center: Tensor, centers: Tensor, factor: float, n: int, images: Tensor,
-                    cameras, seed: int, rounds: int = 20) -> tuple[Tensor, Tensor]:
+def sample_in_shell(
+    center: Tensor,
+    centers: Tensor,
+    factor: float,
+    n: int,
+    images: Tensor,
+    cameras,
+    seed: int,
+    rounds: int = 20,
+) -> tuple[Tensor, Tensor]:
     """Up to n points uniform in the volume of the shell r0 <= |x - center| <= factor r0 that
     some view sees, with their median image colours; r0 = 1.1 x the largest camera distance
     from `center`. Unbounded captures keep their background out there; a shell beyond every
@@ -146,21 +167,29 @@ def sh_degree_in_use(sh: np.ndarray) -> int:
     return degree
 
 
-def gaussians_from_splat_ply(path, scene_from_world, sh_degree: int) -> tuple[dict[str, Tensor], int]:
+def gaussians_from_splat_ply(
+    path, scene_from_world, sh_degree: int
+) -> tuple[dict[str, Tensor], int]:
     """An INRIA splat PLY in WORLD units (as `recon export` writes it) -> the model's attribute
     tensors in the normalized scene frame x_scene = s R x_world + t, and the SH degree the file
     uses (capped at sh_degree). The inverse of `export.splat.gaussians_to_world`, which it is:
     that function with the inverse similarity (1/s, R^T, -R^T t / s) (means, log-scales - ln(1/s),
     rotations R q, SH rotated per degree). SH above sh_degree are dropped."""
-    from recon.export.splat import gaussians_to_world
+    from recon.gaussians.transform import gaussians_to_world
 
     g = read_splat_ply(path)
-    s, R, t = float(scene_from_world.scale), np.asarray(scene_from_world.R, float), np.asarray(scene_from_world.t, float)
+    s, R, t = (
+        float(scene_from_world.scale),
+        np.asarray(scene_from_world.R, float),
+        np.asarray(scene_from_world.t, float),
+    )
     g = {k: v.astype(np.float64) for k, v in g.items()}
     scene = gaussians_to_world(g, 1.0 / s, R.T, -(R.T @ t) / s)
     K = num_sh_bases(sh_degree)
     sh = torch.from_numpy(scene["sh"][:, :K]).float()
-    out = {name: torch.from_numpy(np.ascontiguousarray(scene[name])).float()
-           for name in ("means", "quats", "log_scales", "opacity_logits")}
+    out = {
+        name: torch.from_numpy(np.ascontiguousarray(scene[name])).float()
+        for name in ("means", "quats", "log_scales", "opacity_logits")
+    }
     out["sh_dc"], out["sh_rest"] = sh[:, :1].contiguous(), sh[:, 1:].contiguous()
     return out, min(sh_degree_in_use(g["sh"]), sh_degree)

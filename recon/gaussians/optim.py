@@ -23,9 +23,13 @@ def make_adam(params: nn.ParameterDict, lrs: dict[str, float]) -> torch.optim.Ad
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
 
 
-def update_rows(params: nn.ParameterDict, optimizer: torch.optim.Adam,
-                param_fn: Callable[[str, Tensor], Tensor],
-                moment_fn: Callable[[str, Tensor], Tensor], names: list[str] | None = None) -> None:
+def update_rows(
+    params: nn.ParameterDict,
+    optimizer: torch.optim.Adam,
+    param_fn: Callable[[str, Tensor], Tensor],
+    moment_fn: Callable[[str, Tensor], Tensor],
+    names: list[str] | None = None,
+) -> None:
     """Replace params[name] by param_fn(name, old) and each Adam moment m by moment_fn(name, m),
     for every name in `names` (default all), keeping the Adam step count."""
     for group in optimizer.param_groups:
@@ -49,21 +53,22 @@ def keep_rows(params: nn.ParameterDict, optimizer: torch.optim.Adam, keep: Tenso
     update_rows(params, optimizer, lambda _, x: x[keep], lambda _, m: m[keep])
 
 
-def append_rows(params: nn.ParameterDict, optimizer: torch.optim.Adam,
-                rows: dict[str, Tensor]) -> None:
+def append_rows(
+    params: nn.ParameterDict, optimizer: torch.optim.Adam, rows: dict[str, Tensor]
+) -> None:
     """Clone/split: append new rows (N, ...) per attribute; their moments start at zero."""
-    update_rows(params, optimizer, lambda name, x: torch.cat([x, rows[name].to(x)]),
-                lambda name, m: torch.cat([m, torch.zeros_like(rows[name]).to(m)]))
+    update_rows(
+        params,
+        optimizer,
+        lambda name, x: torch.cat([x, rows[name].to(x)]),
+        lambda name, m: torch.cat([m, torch.zeros_like(rows[name]).to(m)]),
+    )
 
 
-def reset_rows(params: nn.ParameterDict, optimizer: torch.optim.Adam, name: str,
-               value: Tensor) -> None:
+def reset_rows(
+    params: nn.ParameterDict, optimizer: torch.optim.Adam, name: str, value: Tensor
+) -> None:
     """Overwrite one attribute (e.g. the opacity reset) and zero its moments."""
-    update_rows(params, optimizer, lambda _, x: value.to(x), lambda _, m: torch.zeros_like(m),
-                names=[name])
-
-
-def set_lr(optimizer: torch.optim.Adam, name: str, lr: float) -> None:
-    for group in optimizer.param_groups:
-        if group["name"] == name:
-            group["lr"] = lr
+    update_rows(
+        params, optimizer, lambda _, x: value.to(x), lambda _, m: torch.zeros_like(m), names=[name]
+    )

@@ -16,14 +16,25 @@ REST_COEFFS = 15  # SH coefficients of degrees 1..3 per channel
 
 
 def splat_dtype() -> np.dtype:
-    names = (["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(3)]
-             + [f"f_rest_{i}" for i in range(3 * REST_COEFFS)] + ["opacity"]
-             + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+    names = (
+        ["x", "y", "z", "nx", "ny", "nz"]
+        + [f"f_dc_{i}" for i in range(3)]
+        + [f"f_rest_{i}" for i in range(3 * REST_COEFFS)]
+        + ["opacity"]
+        + [f"scale_{i}" for i in range(3)]
+        + [f"rot_{i}" for i in range(4)]
+    )
     return np.dtype([(n, "<f4") for n in names])
 
 
-def write_splat_ply(path: str | Path, means: np.ndarray, quats: np.ndarray,
-                    log_scales: np.ndarray, opacity_logits: np.ndarray, sh: np.ndarray) -> None:
+def write_splat_ply(
+    path: str | Path,
+    means: np.ndarray,
+    quats: np.ndarray,
+    log_scales: np.ndarray,
+    opacity_logits: np.ndarray,
+    sh: np.ndarray,
+) -> None:
     """means (G, 3), quats (G, 4) wxyz, log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)
     with K = (degree + 1)^2 <= 16 -> a binary splat PLY at `path`."""
     G, K = sh.shape[0], sh.shape[1]
@@ -31,15 +42,26 @@ def write_splat_ply(path: str | Path, means: np.ndarray, quats: np.ndarray,
         raise ValueError(f"SH with {K} coefficients per channel; the splat PLY holds at most 16")
     rest = np.zeros((G, 3, REST_COEFFS), np.float32)
     rest[:, :, : K - 1] = np.transpose(sh[:, 1:], (0, 2, 1))  # (G, K-1, 3) -> channel-major
-    columns = np.concatenate([
-        means, np.zeros((G, 3)), sh[:, 0], rest.reshape(G, -1), opacity_logits.reshape(G, 1),
-        log_scales, quats], axis=1).astype("<f4")
+    columns = np.concatenate(
+        [
+            means,
+            np.zeros((G, 3)),
+            sh[:, 0],
+            rest.reshape(G, -1),
+            opacity_logits.reshape(G, 1),
+            log_scales,
+            quats,
+        ],
+        axis=1,
+    ).astype("<f4")
     vertices = np.empty(G, dtype=splat_dtype())
     vertices.view("<f4").reshape(G, -1)[:] = columns
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {G}\n"
-              + "".join(f"property float {n}\n" for n in splat_dtype().names)
-              + "end_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {G}\n"
+        + "".join(f"property float {n}\n" for n in splat_dtype().names)
+        + "end_header\n"
+    )
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(vertices.tobytes())
@@ -86,6 +108,10 @@ def read_splat_ply(path: str | Path) -> dict[str, np.ndarray]:
     sh[:, 0] = stack([f"f_dc_{i}" for i in range(3)])
     rest = stack([f"f_rest_{i}" for i in range(3 * n_rest)]).reshape(count, 3, n_rest)
     sh[:, 1 : 1 + n_rest] = np.transpose(rest, (0, 2, 1))
-    return {"means": stack("xyz"), "quats": stack([f"rot_{i}" for i in range(4)]),
-            "log_scales": stack([f"scale_{i}" for i in range(3)]),
-            "opacity_logits": col["opacity"].astype(np.float32), "sh": sh}
+    return {
+        "means": stack("xyz"),
+        "quats": stack([f"rot_{i}" for i in range(4)]),
+        "log_scales": stack([f"scale_{i}" for i in range(3)]),
+        "opacity_logits": col["opacity"].astype(np.float32),
+        "sh": sh,
+    }

@@ -38,9 +38,11 @@ CHUNKS = 64  # prange work items; each owns a contiguous range of Gaussians
 @numba.njit(cache=True)
 def _rotation(w, x, y, z):
     """R(q) as a tuple of rows (scalars and tuples only: no allocation per Gaussian)."""
-    return ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+    return (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+    )
 
 
 @numba.njit(cache=True)
@@ -61,9 +63,11 @@ def _column(M, j):
 @numba.njit(cache=True)
 def _matmul(A, B):
     c0, c1, c2 = _column(B, 0), _column(B, 1), _column(B, 2)
-    return ((_dot(A[0], c0), _dot(A[0], c1), _dot(A[0], c2)),
-            (_dot(A[1], c0), _dot(A[1], c1), _dot(A[1], c2)),
-            (_dot(A[2], c0), _dot(A[2], c1), _dot(A[2], c2)))
+    return (
+        (_dot(A[0], c0), _dot(A[0], c1), _dot(A[0], c2)),
+        (_dot(A[1], c0), _dot(A[1], c1), _dot(A[1], c2)),
+        (_dot(A[2], c0), _dot(A[2], c1), _dot(A[2], c2)),
+    )
 
 
 @numba.njit(cache=True)
@@ -104,15 +108,31 @@ def _sh_basis_grad(degree, x, y, z, v):
         gy += C2[0] * x * v[4] + C2[1] * z * v[5] - 2 * C2[2] * y * v[6] - 2 * C2[4] * y * v[8]
         gz += C2[1] * y * v[5] + 4 * C2[2] * z * v[6] + C2[3] * x * v[7]
     if degree >= 3:
-        gx += (6 * C3[0] * x * y * v[9] + C3[1] * y * z * v[10] - 2 * C3[2] * x * y * v[11]
-               - 6 * C3[3] * x * z * v[12] + C3[4] * (4 * zz - 3 * xx - yy) * v[13]
-               + 2 * C3[5] * x * z * v[14] + 3 * C3[6] * (xx - yy) * v[15])
-        gy += (3 * C3[0] * (xx - yy) * v[9] + C3[1] * x * z * v[10]
-               + C3[2] * (4 * zz - xx - 3 * yy) * v[11] - 6 * C3[3] * y * z * v[12]
-               - 2 * C3[4] * x * y * v[13] - 2 * C3[5] * y * z * v[14] - 6 * C3[6] * x * y * v[15])
-        gz += (C3[1] * x * y * v[10] + 8 * C3[2] * y * z * v[11]
-               + C3[3] * (6 * zz - 3 * xx - 3 * yy) * v[12] + 8 * C3[4] * x * z * v[13]
-               + C3[5] * (xx - yy) * v[14])
+        gx += (
+            6 * C3[0] * x * y * v[9]
+            + C3[1] * y * z * v[10]
+            - 2 * C3[2] * x * y * v[11]
+            - 6 * C3[3] * x * z * v[12]
+            + C3[4] * (4 * zz - 3 * xx - yy) * v[13]
+            + 2 * C3[5] * x * z * v[14]
+            + 3 * C3[6] * (xx - yy) * v[15]
+        )
+        gy += (
+            3 * C3[0] * (xx - yy) * v[9]
+            + C3[1] * x * z * v[10]
+            + C3[2] * (4 * zz - xx - 3 * yy) * v[11]
+            - 6 * C3[3] * y * z * v[12]
+            - 2 * C3[4] * x * y * v[13]
+            - 2 * C3[5] * y * z * v[14]
+            - 6 * C3[6] * x * y * v[15]
+        )
+        gz += (
+            C3[1] * x * y * v[10]
+            + 8 * C3[2] * y * z * v[11]
+            + C3[3] * (6 * zz - 3 * xx - 3 * yy) * v[12]
+            + 8 * C3[4] * x * z * v[13]
+            + C3[5] * (xx - yy) * v[14]
+        )
     return gx, gy, gz
 
 
@@ -128,13 +148,14 @@ def _quat_grad(q, dR):
     return dw, dx, dy, dz
 
 
-
-
 @numba.njit(cache=True)
 def _geometry(g, means, quats, log_scales, cam, intr, bounds):
     """Everything the projection of Gaussian g computes before the 2D covariance."""
-    Rw = ((cam[0, 0], cam[0, 1], cam[0, 2]), (cam[1, 0], cam[1, 1], cam[1, 2]),
-          (cam[2, 0], cam[2, 1], cam[2, 2]))
+    Rw = (
+        (cam[0, 0], cam[0, 1], cam[0, 2]),
+        (cam[1, 0], cam[1, 1], cam[1, 2]),
+        (cam[2, 0], cam[2, 1], cam[2, 2]),
+    )
     m = (float(means[g, 0]), float(means[g, 1]), float(means[g, 2]))
     p = _matvec(Rw, m)
     p = (p[0] + cam[0, 3], p[1] + cam[1, 3], p[2] + cam[2, 3])
@@ -144,18 +165,26 @@ def _geometry(g, means, quats, log_scales, cam, intr, bounds):
     qn = (q[0] * inv, q[1] * inv, q[2] * inv, q[3] * inv)
     R = _rotation(qn[0], qn[1], qn[2], qn[3])
     s = (math.exp(log_scales[g, 0]), math.exp(log_scales[g, 1]), math.exp(log_scales[g, 2]))
-    M = ((R[0][0] * s[0], R[0][1] * s[1], R[0][2] * s[2]),
-         (R[1][0] * s[0], R[1][1] * s[1], R[1][2] * s[2]),
-         (R[2][0] * s[0], R[2][1] * s[1], R[2][2] * s[2]))
+    M = (
+        (R[0][0] * s[0], R[0][1] * s[1], R[0][2] * s[2]),
+        (R[1][0] * s[0], R[1][1] * s[1], R[1][2] * s[2]),
+        (R[2][0] * s[0], R[2][1] * s[1], R[2][2] * s[2]),
+    )
     Mc = _matmul(Rw, M)
     z = p[2] if p[2] > 0 else 1.0
     u, v = p[0] / z, p[1] / z
     uc, vc = min(max(u, bounds[0]), bounds[1]), min(max(v, bounds[2]), bounds[3])
     k0, k1 = intr[0] / z, intr[1] / z
-    r0 = (k0 * (Mc[0][0] - uc * Mc[2][0]), k0 * (Mc[0][1] - uc * Mc[2][1]),
-          k0 * (Mc[0][2] - uc * Mc[2][2]))
-    r1 = (k1 * (Mc[1][0] - vc * Mc[2][0]), k1 * (Mc[1][1] - vc * Mc[2][1]),
-          k1 * (Mc[1][2] - vc * Mc[2][2]))
+    r0 = (
+        k0 * (Mc[0][0] - uc * Mc[2][0]),
+        k0 * (Mc[0][1] - uc * Mc[2][1]),
+        k0 * (Mc[0][2] - uc * Mc[2][2]),
+    )
+    r1 = (
+        k1 * (Mc[1][0] - vc * Mc[2][0]),
+        k1 * (Mc[1][1] - vc * Mc[2][1]),
+        k1 * (Mc[1][2] - vc * Mc[2][2]),
+    )
     return Rw, p, norm2, inv, qn, R, s, Mc, u, v, uc, vc, k0, k1, r0, r1
 
 
@@ -186,8 +215,24 @@ def _conic(r0, r1):
 
 
 @numba.njit(cache=True)
-def _project_one(g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds, center,
-                 width, height, near, basis, out):
+def _project_one(
+    g,
+    means,
+    quats,
+    log_scales,
+    sh_dc,
+    sh_rest,
+    degree,
+    cam,
+    intr,
+    bounds,
+    center,
+    width,
+    height,
+    near,
+    basis,
+    out,
+):
     c_raw = _colour(g, means, sh_dc, sh_rest, degree, center, basis)[3]
     for c in range(3):
         out[g, 7 + c] = max(c_raw[c], 0.0)
@@ -200,23 +245,45 @@ def _project_one(g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr,
     mx, my = intr[0] * u + intr[2], intr[1] * v + intr[3]
     half_gap = max(math.hypot(0.5 * (a - c), b), math.sqrt(0.1))
     radius = math.ceil(3.0 * math.sqrt(0.5 * (a + c) + half_gap))
-    if (math.isfinite(radius) and mx + radius > 0 and mx - radius < width
-            and my + radius > 0 and my - radius < height):
+    if (
+        math.isfinite(radius)
+        and mx + radius > 0
+        and mx - radius < width
+        and my + radius > 0
+        and my - radius < height
+    ):
         out[g, 0], out[g, 1] = mx, my
         out[g, 2], out[g, 3], out[g, 4] = c / det, -b / det, a / det
         out[g, 6] = radius
 
 
 @numba.njit(parallel=True, cache=True)
-def _project_forward(means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds, center,
-                     width, height, near):
+def _project_forward(
+    means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds, center, width, height, near
+):
     G = means.shape[0]
     out = np.zeros((G, OUT_COLUMNS), means.dtype)
     for chunk in prange(CHUNKS):
         basis = np.empty(16)  # scratch per chunk: a (G, 16) array costs more in page faults
         for g in range(chunk * G // CHUNKS, (chunk + 1) * G // CHUNKS):
-            _project_one(g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds,
-                         center, width, height, near, basis, out)
+            _project_one(
+                g,
+                means,
+                quats,
+                log_scales,
+                sh_dc,
+                sh_rest,
+                degree,
+                cam,
+                intr,
+                bounds,
+                center,
+                width,
+                height,
+                near,
+                basis,
+                out,
+            )
     return out
 
 
@@ -246,11 +313,25 @@ def _geometry_grad(geo, g_means2d, g_conic, g_depth, intr, bounds, near):
     a, b, c, det, valid = _conic(r0, r1)
     if p[2] > near and valid:
         ga, gb, gc = _cov_grad(a, b, c, det, g_conic)
-        dr0 = (2 * ga * r0[0] + gb * r1[0], 2 * ga * r0[1] + gb * r1[1], 2 * ga * r0[2] + gb * r1[2])
-        dr1 = (gb * r0[0] + 2 * gc * r1[0], gb * r0[1] + 2 * gc * r1[1], gb * r0[2] + 2 * gc * r1[2])
-        dMc = ((k0 * dr0[0], k0 * dr0[1], k0 * dr0[2]), (k1 * dr1[0], k1 * dr1[1], k1 * dr1[2]),
-               (-k0 * uc * dr0[0] - k1 * vc * dr1[0], -k0 * uc * dr0[1] - k1 * vc * dr1[1],
-                -k0 * uc * dr0[2] - k1 * vc * dr1[2]))
+        dr0 = (
+            2 * ga * r0[0] + gb * r1[0],
+            2 * ga * r0[1] + gb * r1[1],
+            2 * ga * r0[2] + gb * r1[2],
+        )
+        dr1 = (
+            gb * r0[0] + 2 * gc * r1[0],
+            gb * r0[1] + 2 * gc * r1[1],
+            gb * r0[2] + 2 * gc * r1[2],
+        )
+        dMc = (
+            (k0 * dr0[0], k0 * dr0[1], k0 * dr0[2]),
+            (k1 * dr1[0], k1 * dr1[1], k1 * dr1[2]),
+            (
+                -k0 * uc * dr0[0] - k1 * vc * dr1[0],
+                -k0 * uc * dr0[1] - k1 * vc * dr1[1],
+                -k0 * uc * dr0[2] - k1 * vc * dr1[2],
+            ),
+        )
         e0 = (Mc[0][0] - uc * Mc[2][0], Mc[0][1] - uc * Mc[2][1], Mc[0][2] - uc * Mc[2][2])
         e1 = (Mc[1][0] - vc * Mc[2][0], Mc[1][1] - vc * Mc[2][1], Mc[1][2] - vc * Mc[2][2])
         dk0, dk1 = _dot(dr0, e0), _dot(dr1, e1)
@@ -262,32 +343,61 @@ def _geometry_grad(geo, g_means2d, g_conic, g_depth, intr, bounds, near):
         dv += intr[1] * g_means2d[1]
         dp2 -= (k0 * dk0 + k1 * dk1 + u * du + v * dv) / p[2]
         dM = _matmul(_transpose(Rw), dMc)
-        dR = ((dM[0][0] * s[0], dM[0][1] * s[1], dM[0][2] * s[2]),
-              (dM[1][0] * s[0], dM[1][1] * s[1], dM[1][2] * s[2]),
-              (dM[2][0] * s[0], dM[2][1] * s[1], dM[2][2] * s[2]))
-        ds = (s[0] * _dot(_column(dM, 0), _column(R, 0)), s[1] * _dot(_column(dM, 1), _column(R, 1)),
-              s[2] * _dot(_column(dM, 2), _column(R, 2)))
+        dR = (
+            (dM[0][0] * s[0], dM[0][1] * s[1], dM[0][2] * s[2]),
+            (dM[1][0] * s[0], dM[1][1] * s[1], dM[1][2] * s[2]),
+            (dM[2][0] * s[0], dM[2][1] * s[1], dM[2][2] * s[2]),
+        )
+        ds = (
+            s[0] * _dot(_column(dM, 0), _column(R, 0)),
+            s[1] * _dot(_column(dM, 1), _column(R, 1)),
+            s[2] * _dot(_column(dM, 2), _column(R, 2)),
+        )
     dp = (du / p[2] if p[2] > near else 0.0, dv / p[2] if p[2] > near else 0.0, dp2)
     d_mean = _matvec(_transpose(Rw), dp)
     dqn = _quat_grad(qn, dR)
     if norm2 > QUAT_EPS * QUAT_EPS:  # d(q / |q|) = (I - q^ q^T) / |q|
         proj = qn[0] * dqn[0] + qn[1] * dqn[1] + qn[2] * dqn[2] + qn[3] * dqn[3]
-        dq = (inv * (dqn[0] - qn[0] * proj), inv * (dqn[1] - qn[1] * proj),
-              inv * (dqn[2] - qn[2] * proj), inv * (dqn[3] - qn[3] * proj))
+        dq = (
+            inv * (dqn[0] - qn[0] * proj),
+            inv * (dqn[1] - qn[1] * proj),
+            inv * (dqn[2] - qn[2] * proj),
+            inv * (dqn[3] - qn[3] * proj),
+        )
     else:
         dq = (inv * dqn[0], inv * dqn[1], inv * dqn[2], inv * dqn[3])
     return d_mean, dq, ds, dp, dMc
 
 
 @numba.njit(cache=True, inline="always")
-def _project_one_grad(g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds,
-                      center, near, g_out, basis, weights, d_means, d_quats, d_scales, d_dc,
-                      d_rest):
+def _project_one_grad(
+    g,
+    means,
+    quats,
+    log_scales,
+    sh_dc,
+    sh_rest,
+    degree,
+    cam,
+    intr,
+    bounds,
+    center,
+    near,
+    g_out,
+    basis,
+    weights,
+    d_means,
+    d_quats,
+    d_scales,
+    d_dc,
+    d_rest,
+):
     """Gaussian g's gradients into the d_* rows. Returns what its share of the camera gradient
     needs (`_camera_grad_one`); the kernel that does not use it compiles it away."""
     geo = _geometry(g, means, quats, log_scales, cam, intr, bounds)
-    dm, dq, ds, dp, dMc = _geometry_grad(geo, g_out[g, 0:2], g_out[g, 2:5], g_out[g, 5], intr,
-                                         bounds, near)
+    dm, dq, ds, dp, dMc = _geometry_grad(
+        geo, g_out[g, 0:2], g_out[g, 2:5], g_out[g, 5], intr, bounds, near
+    )
     d, norm, unfloored, c_raw = _colour(g, means, sh_dc, sh_rest, degree, center, basis)
     weights[:] = 0.0
     for c in range(3):
@@ -299,8 +409,11 @@ def _project_one_grad(g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, 
             weights[k] += sh_rest[g, k - 1, c] * gc
     gd = _sh_basis_grad(degree, d[0], d[1], d[2], weights)
     along = _dot(d, gd) if unfloored else 0.0  # below the floor d = v / 1e-10 is linear
-    d_colour = ((gd[0] - d[0] * along) / norm, (gd[1] - d[1] * along) / norm,
-                (gd[2] - d[2] * along) / norm)
+    d_colour = (
+        (gd[0] - d[0] * along) / norm,
+        (gd[1] - d[1] * along) / norm,
+        (gd[2] - d[2] * along) / norm,
+    )
     for i in range(3):
         d_means[g, i] = dm[i] + d_colour[i]
         d_scales[g, i] = ds[i]
@@ -317,9 +430,9 @@ def _camera_grad_one(g, means, R, s, dp, dMc, d_colour, acc):
     colour part of dL/dmu."""
     for i in range(3):
         for j in range(3):
-            acc[3 * i + j] += dp[i] * means[g, j] + (dMc[i][0] * R[j][0] * s[0]
-                                                     + dMc[i][1] * R[j][1] * s[1]
-                                                     + dMc[i][2] * R[j][2] * s[2])
+            acc[3 * i + j] += dp[i] * means[g, j] + (
+                dMc[i][0] * R[j][0] * s[0] + dMc[i][1] * R[j][1] * s[1] + dMc[i][2] * R[j][2] * s[2]
+            )
         acc[9 + i] += dp[i]
         acc[12 + i] -= d_colour[i]
 
@@ -339,8 +452,9 @@ def _gradient_arrays(means, sh_dc, sh_rest, degree):
 
 
 @numba.njit(parallel=True, cache=True)
-def _project_backward(means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds,
-                      center, near, g_out):
+def _project_backward(
+    means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds, center, near, g_out
+):
     """g_out (G, 10): dL/d(means2d, conic, depth, -, colour) -> dL/d(means, quats, log-scales,
     sh_dc, sh_rest)."""
     G = means.shape[0]
@@ -348,15 +462,35 @@ def _project_backward(means, quats, log_scales, sh_dc, sh_rest, degree, cam, int
     for chunk in prange(CHUNKS):
         basis, weights = np.empty(16), np.empty(16)
         for g in range(chunk * G // CHUNKS, (chunk + 1) * G // CHUNKS):
-            _project_one_grad(g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr,
-                              bounds, center, near, g_out, basis, weights, d_means, d_quats,
-                              d_scales, d_dc, d_rest)
+            _project_one_grad(
+                g,
+                means,
+                quats,
+                log_scales,
+                sh_dc,
+                sh_rest,
+                degree,
+                cam,
+                intr,
+                bounds,
+                center,
+                near,
+                g_out,
+                basis,
+                weights,
+                d_means,
+                d_quats,
+                d_scales,
+                d_dc,
+                d_rest,
+            )
     return d_means, d_quats, d_scales, d_dc, d_rest
 
 
 @numba.njit(parallel=True, cache=True)
-def _project_backward_camera(means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr,
-                             bounds, center, near, g_out):
+def _project_backward_camera(
+    means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds, center, near, g_out
+):
     """`_project_backward`, and per-chunk partial sums (CHUNKS, 15) of the camera gradient
     (`_camera_grad_one`): each chunk owns its row, so no races. A kernel of its own so that
     the default path pays nothing for it."""
@@ -367,8 +501,27 @@ def _project_backward_camera(means, quats, log_scales, sh_dc, sh_rest, degree, c
         basis, weights = np.empty(16), np.empty(16)
         for g in range(chunk * G // CHUNKS, (chunk + 1) * G // CHUNKS):
             R, s, dp, dMc, d_colour = _project_one_grad(
-                g, means, quats, log_scales, sh_dc, sh_rest, degree, cam, intr, bounds, center,
-                near, g_out, basis, weights, d_means, d_quats, d_scales, d_dc, d_rest)
+                g,
+                means,
+                quats,
+                log_scales,
+                sh_dc,
+                sh_rest,
+                degree,
+                cam,
+                intr,
+                bounds,
+                center,
+                near,
+                g_out,
+                basis,
+                weights,
+                d_means,
+                d_quats,
+                d_scales,
+                d_dc,
+                d_rest,
+            )
             _camera_grad_one(g, means, R, s, dp, dMc, d_colour, partial[chunk])
     return d_means, d_quats, d_scales, d_dc, d_rest, partial
 
@@ -379,7 +532,9 @@ def _camera_arrays(K: torch.Tensor, cam_from_world: torch.Tensor, width: int, he
     K = K.detach().double().cpu()
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     mx, my = (GUARD_BAND - 1) * width / (2 * fx), (GUARD_BAND - 1) * height / (2 * fy)
-    bounds = np.array([-cx / fx - mx, (width - cx) / fx + mx, -cy / fy - my, (height - cy) / fy + my])
+    bounds = np.array(
+        [-cx / fx - mx, (width - cx) / fx + mx, -cy / fy - my, (height - cy) / fy + my]
+    )
     center = (-cfw[:3, :3].T @ cfw[:3, 3]).numpy()
     return cfw[:3].numpy().copy(), np.array([fx, fy, cx, cy]), bounds, center
 
@@ -398,24 +553,47 @@ def _camera_gradient(cam_partial: np.ndarray, cam: np.ndarray) -> torch.Tensor:
 
 class _ProjectFused(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, log_scales, sh_dc, sh_rest, cam_from_world, camera, degree,
-                near):
+    def forward(
+        ctx, means, quats, log_scales, sh_dc, sh_rest, cam_from_world, camera, degree, near
+    ):
         cam, intr, bounds, center, width, height = camera
-        arrays = [t.detach().contiguous().numpy() for t in (means, quats, log_scales, sh_dc, sh_rest)]
-        out = torch.from_numpy(_project_forward(*arrays, degree, cam, intr, bounds, center,
-                                                width, height, near))
+        arrays = [
+            t.detach().contiguous().numpy() for t in (means, quats, log_scales, sh_dc, sh_rest)
+        ]
+        out = torch.from_numpy(
+            _project_forward(*arrays, degree, cam, intr, bounds, center, width, height, near)
+        )
         ctx.saved = (arrays, degree, cam, intr, bounds, center, near)
         ctx.cam_dtype = cam_from_world.dtype
         radii = out[:, 6].clone()
         ctx.mark_non_differentiable(radii)
-        return out[:, 0:2].clone(), out[:, 2:5].clone(), out[:, 5].clone(), radii, out[:, 7:10].clone()
+        return (
+            out[:, 0:2].clone(),
+            out[:, 2:5].clone(),
+            out[:, 5].clone(),
+            radii,
+            out[:, 7:10].clone(),
+        )
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_depths, _g_radii, g_colors):
         arrays, degree, cam, intr, bounds, center, near = ctx.saved
         camera_grad = ctx.needs_input_grad[5]
-        g_out = torch.cat([g_means2d, g_conics, g_depths[:, None], torch.zeros_like(g_depths)[:, None],
-                           g_colors], 1).to(torch.from_numpy(arrays[0]).dtype).contiguous().numpy()
+        g_out = (
+            torch.cat(
+                [
+                    g_means2d,
+                    g_conics,
+                    g_depths[:, None],
+                    torch.zeros_like(g_depths)[:, None],
+                    g_colors,
+                ],
+                1,
+            )
+            .to(torch.from_numpy(arrays[0]).dtype)
+            .contiguous()
+            .numpy()
+        )
         with record_function("3dgs.project_backward"):
             kernel = _project_backward_camera if camera_grad else _project_backward
             grads = kernel(*arrays, degree, cam, intr, bounds, center, near, g_out)
@@ -424,13 +602,32 @@ class _ProjectFused(torch.autograd.Function):
         if camera_grad:
             cam_partial = grads[5]
             d_cam = _camera_gradient(cam_partial, cam).to(ctx.cam_dtype)
-        return (d_means, d_quats, d_scales, d_dc, d_rest if degree > 0 else None, d_cam, None,
-                None, None)
+        return (
+            d_means,
+            d_quats,
+            d_scales,
+            d_dc,
+            d_rest if degree > 0 else None,
+            d_cam,
+            None,
+            None,
+            None,
+        )
 
 
-def project_fused(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
-                  sh_dc: torch.Tensor, sh_rest: torch.Tensor, degree: int, K: torch.Tensor,
-                  cam_from_world: torch.Tensor, width: int, height: int, near: float = 0.01):
+def project_fused(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    sh_dc: torch.Tensor,
+    sh_rest: torch.Tensor,
+    degree: int,
+    K: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+):
     """CPU twin of `projection.project_gaussians` + `projection.sh_colors` in one numba pass.
 
     means (G, 3), quats (G, 4), log_scales (G, 3), sh_dc (G, 1, 3), sh_rest (G, R, 3) with
@@ -440,5 +637,6 @@ def project_fused(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Te
     (zero bottom row), through the projection and the colours' view directions; K gets none.
     """
     camera = (*_camera_arrays(K, cam_from_world, width, height), width, height)
-    return _ProjectFused.apply(means, quats, log_scales, sh_dc, sh_rest, cam_from_world, camera,
-                               degree, near)
+    return _ProjectFused.apply(
+        means, quats, log_scales, sh_dc, sh_rest, cam_from_world, camera, degree, near
+    )

@@ -1,6 +1,6 @@
 """3D Gaussians to 2D splats: quaternion -> rotation, Sigma = R S S^T R^T, EWA projection
 Sigma' = J W Sigma W^T J^T + 0.3 I, the stable 2x2 conic, the 3-sigma radius and SH colour
-(seed, "3D Gaussian Splatting" / "Projection to 2D via the EWA splatting Jacobian").
+(Kerbl et al. 2023, Sec. 4, eqs. 5-6; EWA splatting: Zwicker et al. 2001).
 
 All functions are vectorised torch with autograd, device-agnostic; G = number of Gaussians.
 """
@@ -35,9 +35,15 @@ def rotation_from_quats(quats: Tensor) -> Tensor:
     """
     w, x, y, z = normalize_quats(quats).unbind(-1)
     rows = (
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
     )
     return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
@@ -53,8 +59,9 @@ def covariance_3d(quats: Tensor, log_scales: Tensor) -> Tensor:
     return (M[..., :, None, :] * M[..., None, :, :]).sum(-1)
 
 
-def ewa_covariance_2d(points_in_cam: Tensor, factor_in_cam: Tensor, K: Tensor, width: int,
-                      height: int) -> Tensor:
+def ewa_covariance_2d(
+    points_in_cam: Tensor, factor_in_cam: Tensor, K: Tensor, width: int, height: int
+) -> Tensor:
     """Sigma' = J Sigma_cam J^T + 0.3 I = (J M)(J M)^T + 0.3 I, Sigma_cam = W Sigma W^T = M M^T,
     J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]].
 
@@ -62,7 +69,7 @@ def ewa_covariance_2d(points_in_cam: Tensor, factor_in_cam: Tensor, K: Tensor, w
     [[a, b], [b, c]]. Working on the factor keeps it elementwise (no batched 3x3 matmuls, which
     are slow on a CPU). x/z and y/z are clamped to the frustum widened by the guard band (the
     reference's 1.3x), measured from the principal point so off-centre cameras work too.
-    Worked example (seed Problem 5): mean (0.4, -0.2, 2), scales (0.1, 0.05, 0.2), 30deg about
+    Worked example: mean (0.4, -0.2, 2), scales (0.1, 0.05, 0.2), 30deg about
     z, f = 1111 -> eigenvalues 1163.4 and 3311.6 px^2.
     """
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -73,8 +80,10 @@ def ewa_covariance_2d(points_in_cam: Tensor, factor_in_cam: Tensor, K: Tensor, w
     M = factor_in_cam
     row0 = (fx / z) * (M[:, 0] - u * M[:, 2])  # first row of J M, (G, 3)
     row1 = (fy / z) * (M[:, 1] - v * M[:, 2])
-    return torch.stack([(row0 * row0).sum(-1) + DILATION, (row0 * row1).sum(-1),
-                        (row1 * row1).sum(-1) + DILATION], -1)
+    return torch.stack(
+        [(row0 * row0).sum(-1) + DILATION, (row0 * row1).sum(-1), (row1 * row1).sum(-1) + DILATION],
+        -1,
+    )
 
 
 def conic_from_cov2d(cov2d: Tensor) -> tuple[Tensor, Tensor]:
@@ -92,8 +101,9 @@ def conic_from_cov2d(cov2d: Tensor) -> tuple[Tensor, Tensor]:
     an, bn, cn = a / s, b / s, c / s
     det_n = an * cn - bn * bn
     valid = (det_n > 0) & torch.isfinite(det_n) & finite[..., 0]
-    inv = torch.where(valid, 1.0 / (det_n.where(valid, torch.ones_like(det_n)) * s),
-                      torch.zeros_like(det_n))
+    inv = torch.where(
+        valid, 1.0 / (det_n.where(valid, torch.ones_like(det_n)) * s), torch.zeros_like(det_n)
+    )
     return torch.stack([cn * inv, -bn * inv, an * inv], -1), valid
 
 
@@ -119,9 +129,16 @@ def sh_colors(means: Tensor, sh: Tensor, degree: int, camera_center: Tensor) -> 
     return torch.clamp_min(eval_sh(degree, sh, dirs) + 0.5, 0.0)
 
 
-def project_gaussians(means: Tensor, quats: Tensor, log_scales: Tensor, K: Tensor,
-                      cam_from_world: Tensor, width: int, height: int, near: float = 0.01,
-                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def project_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    log_scales: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """EWA projection of G world-space Gaussians into one camera.
 
     means (G, 3), quats (G, 4), log_scales (G, 3), K (3, 3), cam_from_world (4, 4) ->
@@ -142,8 +159,12 @@ def project_gaussians(means: Tensor, quats: Tensor, log_scales: Tensor, K: Tenso
     means2d = torch.stack([K[0, 0] * uv[:, 0] + K[0, 2], K[1, 1] * uv[:, 1] + K[1, 2]], -1)
     radii = radius_3sigma(cov2d)
     m = means2d.detach()
-    on_image = ((m[:, 0] + radii > 0) & (m[:, 0] - radii < width)
-                & (m[:, 1] + radii > 0) & (m[:, 1] - radii < height))
+    on_image = (
+        (m[:, 0] + radii > 0)
+        & (m[:, 0] - radii < width)
+        & (m[:, 1] + radii > 0)
+        & (m[:, 1] - radii < height)
+    )
     keep = in_front & valid & on_image & torch.isfinite(radii)
     radii = torch.where(keep, radii, torch.zeros_like(radii))
     return means2d, conics, depths, radii

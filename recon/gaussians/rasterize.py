@@ -1,6 +1,6 @@
 """Fast CPU tile rasterizer (numba), forward and backward, as a `torch.autograd.Function`.
 
-Per pixel p and its tile's depth-sorted list (seed, "Tile-based differentiable rasterization"):
+Per pixel p and its tile's depth-sorted list (Kerbl et al. 2023, Sec. 6):
     alpha_i = min(0.99, o_i exp(-0.5 d^T conic_i d)), d = mu_i - p, skipped if < 1/255,
     T_i = prod_{j<i} (1 - alpha_j), F(p) = sum_i T_i alpha_i f_i,
 stopping before the splat that would take T below 1e-4. The forward saves the final T and the
@@ -12,8 +12,8 @@ Tiles run in parallel (`prange` over interleaved tile chunks); within a tile eac
 only the pixels inside its alpha >= 1/255 ellipse d^T conic d <= 2 ln(255 o), row by row and
 slightly widened (an exact bound: it changes speed, not results), with exp evaluated by an
 exact multiplicative recurrence along each row. Backward gradients go to one buffer per thread
-chunk, reduced once (deterministic for a given thread count). `rasterize_ref.py` is the slow
-twin with the same semantics, `rasterize_packed.py` the vectorised torch version used on other
+chunk, reduced once (deterministic for a given thread count). `rasterize_reference.py` is the slow
+twin with the same semantics, `rasterize_torch.py` the vectorised torch version used on other
 devices; tests compare all three on outputs and gradients.
 """
 
@@ -29,6 +29,7 @@ from numba import prange
 from torch import Tensor
 from torch.profiler import record_function
 
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, bin_gaussians, tile_bounds
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
@@ -38,9 +39,6 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
     # Takes effect only if no numba parallel region has run yet in this process.
     numba.config.THREADING_LAYER = "workqueue"
 
-ALPHA_MAX = 0.99  # keeps 1 - alpha away from 0 so the backward can divide by it
-ALPHA_MIN = 1.0 / 255.0  # contributions below one 8-bit level are skipped
-T_MIN = 1e-4  # early termination: a pixel stops before T would fall below this
 SLACK = 1e-3  # relative widening of the alpha >= 1/255 ellipse used to skip pixels
 RECUR_MAX_A = 4.0  # conic x-curvatures up to this use the exp recurrence (no overflow risk)
 FORWARD_CHUNKS = 64  # parallel work items of the forward, each a strided set of tiles
@@ -134,8 +132,23 @@ def _tile_box(t, width, height, tile):
 
 
 @numba.njit(cache=True)
-def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
-                  height, tile, consts, centers, out_feat, out_T, out_last):
+def _forward_tile(
+    t,
+    means2d,
+    conics,
+    opacities,
+    features,
+    tile_start,
+    gauss_ids,
+    width,
+    height,
+    tile,
+    consts,
+    centers,
+    out_feat,
+    out_T,
+    out_last,
+):
     alpha_max, alpha_min, t_min, one = consts[0], consts[1], consts[2], consts[4]
     D = features.shape[1]
     x0, y0, x1, y1 = _tile_box(t, width, height, tile)
@@ -190,8 +203,19 @@ def _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids
 
 
 @numba.njit(parallel=True, fastmath=False, cache=True)
-def _forward_kernel(means2d, conics, opacities, features, tile_start, gauss_ids, width, height,
-                    tile, consts, centers):
+def _forward_kernel(
+    means2d,
+    conics,
+    opacities,
+    features,
+    tile_start,
+    gauss_ids,
+    width,
+    height,
+    tile,
+    consts,
+    centers,
+):
     out_feat = np.zeros((height, width, features.shape[1]), features.dtype)
     out_T = np.ones((height, width), features.dtype)
     out_last = np.full((height, width), -1, np.int32)
@@ -200,14 +224,45 @@ def _forward_kernel(means2d, conics, opacities, features, tile_start, gauss_ids,
     # hold most of the work; tiles t, t + 64, ... cost about the same as any other such set.
     for chunk in prange(FORWARD_CHUNKS):
         for t in range(chunk, n_tiles, FORWARD_CHUNKS):
-            _forward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
-                          height, tile, consts, centers, out_feat, out_T, out_last)
+            _forward_tile(
+                t,
+                means2d,
+                conics,
+                opacities,
+                features,
+                tile_start,
+                gauss_ids,
+                width,
+                height,
+                tile,
+                consts,
+                centers,
+                out_feat,
+                out_T,
+                out_last,
+            )
     return out_feat, out_T, out_last
 
 
 @numba.njit(cache=True)
-def _backward_splat(g, i, box, means2d, conics, opacities, features, consts, centers, T, last,
-                    g_feat, g_T_final, S, g_f, row):
+def _backward_splat(
+    g,
+    i,
+    box,
+    means2d,
+    conics,
+    opacities,
+    features,
+    consts,
+    centers,
+    T,
+    last,
+    g_feat,
+    g_T_final,
+    S,
+    g_f,
+    row,
+):
     """Gradients of splat g (position i in its tile's list) summed over the tile's pixels that
     it reached, walking back to front (updates T to T_i and S to S_i as it goes).
     Returns dL/d(mx, my, A, B, C, o); dL/df goes to g_f."""
@@ -257,8 +312,25 @@ def _backward_splat(g, i, box, means2d, conics, opacities, features, consts, cen
 
 
 @numba.njit(cache=True)
-def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
-                   height, tile, consts, centers, fwd_T, fwd_last, grad_feat, grad_T, grads):
+def _backward_tile(
+    t,
+    means2d,
+    conics,
+    opacities,
+    features,
+    tile_start,
+    gauss_ids,
+    width,
+    height,
+    tile,
+    consts,
+    centers,
+    fwd_T,
+    fwd_last,
+    grad_feat,
+    grad_T,
+    grads,
+):
     box = _tile_box(t, width, height, tile)
     x0, y0, x1, y1 = box
     tw, n_pix, D = x1 - x0, (x1 - x0) * (y1 - y0), features.shape[1]
@@ -282,8 +354,24 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
         g = gauss_ids[k]
         if not opacities[g] >= consts[1]:  # alpha <= o < 1/255: never reached a pixel
             continue
-        g_splat = _backward_splat(g, k - start, box, means2d, conics, opacities, features,
-                                  consts, centers, T, last, g_feat, g_T_final, S, g_f, row)
+        g_splat = _backward_splat(
+            g,
+            k - start,
+            box,
+            means2d,
+            conics,
+            opacities,
+            features,
+            consts,
+            centers,
+            T,
+            last,
+            g_feat,
+            g_T_final,
+            S,
+            g_f,
+            row,
+        )
         for j in range(GRAD_COLUMNS):
             grads[g, j] += g_splat[j]
         for c in range(D):
@@ -291,8 +379,24 @@ def _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_id
 
 
 @numba.njit(parallel=True, fastmath=False, cache=True)
-def _backward_kernel(means2d, conics, opacities, features, tile_start, gauss_ids, width, height,
-                     tile, consts, centers, fwd_T, fwd_last, grad_feat, grad_T, n_chunks):
+def _backward_kernel(
+    means2d,
+    conics,
+    opacities,
+    features,
+    tile_start,
+    gauss_ids,
+    width,
+    height,
+    tile,
+    consts,
+    centers,
+    fwd_T,
+    fwd_last,
+    grad_feat,
+    grad_T,
+    n_chunks,
+):
     """Chunk c owns tiles c, c + n_chunks, ... and its own gradient buffer (no atomics);
     interleaving balances the load because neighbouring tiles cost about the same."""
     n_tiles = tile_start.shape[0] - 1
@@ -300,9 +404,25 @@ def _backward_kernel(means2d, conics, opacities, features, tile_start, gauss_ids
     grads = np.zeros((n_chunks, G, GRAD_COLUMNS + D), features.dtype)
     for chunk in prange(n_chunks):
         for t in range(chunk, n_tiles, n_chunks):
-            _backward_tile(t, means2d, conics, opacities, features, tile_start, gauss_ids, width,
-                           height, tile, consts, centers, fwd_T, fwd_last, grad_feat, grad_T,
-                           grads[chunk])
+            _backward_tile(
+                t,
+                means2d,
+                conics,
+                opacities,
+                features,
+                tile_start,
+                gauss_ids,
+                width,
+                height,
+                tile,
+                consts,
+                centers,
+                fwd_T,
+                fwd_last,
+                grad_feat,
+                grad_T,
+                grads[chunk],
+            )
     return grads
 
 
@@ -322,9 +442,19 @@ class _RasterizeFeatures(torch.autograd.Function):
         # is ~2x cheaper than exp) instead of being promoted by float64 literals.
         consts = np.array([ALPHA_MAX, ALPHA_MIN, T_MIN, 0.5, 1.0], dtype=np_dt)
         centers = np.arange(max(width, height), dtype=np_dt) + np_dt.type(0.5)
-        args = (_numpy(means2d, dt), _numpy(conics, dt), _numpy(opacities, dt),
-                _numpy(features, dt), tile_start.numpy(), gauss_ids.numpy(), width, height, TILE,
-                consts, centers)
+        args = (
+            _numpy(means2d, dt),
+            _numpy(conics, dt),
+            _numpy(opacities, dt),
+            _numpy(features, dt),
+            tile_start.numpy(),
+            gauss_ids.numpy(),
+            width,
+            height,
+            TILE,
+            consts,
+            centers,
+        )
         with record_function("3dgs.raster_forward"):
             image, T, last = _forward_kernel(*args)
         ctx.args, ctx.fwd = args, (T, last)
@@ -335,31 +465,52 @@ class _RasterizeFeatures(torch.autograd.Function):
     def backward(ctx, grad_image, grad_T):
         dt = torch.from_numpy(ctx.fwd[0][:0]).dtype
         with record_function("3dgs.raster_backward"):
-            buffers = _backward_kernel(*ctx.args, *ctx.fwd, _numpy(grad_image, dt),
-                                       _numpy(grad_T, dt), numba.get_num_threads())
+            buffers = _backward_kernel(
+                *ctx.args,
+                *ctx.fwd,
+                _numpy(grad_image, dt),
+                _numpy(grad_T, dt),
+                numba.get_num_threads(),
+            )
             grads = torch.from_numpy(buffers).sum(0)
         d_means, d_conics, d_opac = ctx.in_dtypes
-        return (grads[:, 0:2].to(d_means), grads[:, 2:5].to(d_conics), grads[:, 5].to(d_opac),
-                grads[:, GRAD_COLUMNS:], None, None, None, None)
+        return (
+            grads[:, 0:2].to(d_means),
+            grads[:, 2:5].to(d_conics),
+            grads[:, 5].to(d_opac),
+            grads[:, GRAD_COLUMNS:],
+            None,
+            None,
+            None,
+            None,
+        )
 
 
-def rasterize_features(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                       radii: Tensor, depths: Tensor, width: int, height: int,
-                       ) -> tuple[Tensor, Tensor]:
+def rasterize_features(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
     """F(p) = sum_i T_i alpha_i f_i and T_final(p) over depth-sorted splats, differentiable.
 
     means2d (G, 2), conics (G, 3), opacities (G,), features (G, D), radii (G,) (0 = culled),
     depths (G,) -> image (H, W, D), transmittance (H, W). The numba kernels run on CPU tensors;
-    other devices use the vectorised torch version `rasterize_packed.rasterize_features_packed`.
+    other devices use the vectorised torch version `rasterize_torch.rasterize_features_torch`.
     """
     if means2d.device.type != "cpu":
-        from recon.gaussians.rasterize_packed import rasterize_features_packed
+        from recon.gaussians.rasterize_torch import rasterize_features_torch
 
-        return rasterize_features_packed(means2d, conics, opacities, features, radii, depths,
-                                         width, height)
+        return rasterize_features_torch(
+            means2d, conics, opacities, features, radii, depths, width, height
+        )
     with record_function("3dgs.bin"):
         bounds = tile_bounds(means2d, radii, width, height)
         tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height)
-    return _RasterizeFeatures.apply(means2d, conics, opacities, features, tile_start, gauss_ids,
-                                    width, height)
-
+    return _RasterizeFeatures.apply(
+        means2d, conics, opacities, features, tile_start, gauss_ids, width, height
+    )

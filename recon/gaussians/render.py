@@ -35,8 +35,9 @@ class ProjectedSplats:
     height: int
 
 
-def project_splats(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int,
-                   near: float = 0.01) -> ProjectedSplats:
+def project_splats(
+    gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int, near: float = 0.01
+) -> ProjectedSplats:
     """Project G Gaussians into the single camera `camera` (len 1), colours from SH of
     `sh_degree` seen from its centre, opacity = sigmoid(logit). CPU tensors take the fused
     numba pass (`project_fused`), other devices its pure-torch twin (`project_splats_torch`)."""
@@ -45,35 +46,56 @@ def project_splats(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: 
     g, dtype = gaussians, gaussians["means"].dtype
     W, H = int(camera.width[0]), int(camera.height[0])
     means2d, conics, depths, radii, colors = project_fused(
-        g["means"], g["quats"], g["log_scales"], g["sh_dc"], g["sh_rest"], sh_degree,
-        camera.K[0].to(dtype), camera.cam_from_world[0].to(dtype), W, H, near)
-    return ProjectedSplats(means2d, conics, depths, radii, torch.sigmoid(g["opacity_logits"]),
-                           colors, W, H)
+        g["means"],
+        g["quats"],
+        g["log_scales"],
+        g["sh_dc"],
+        g["sh_rest"],
+        sh_degree,
+        camera.K[0].to(dtype),
+        camera.cam_from_world[0].to(dtype),
+        W,
+        H,
+        near,
+    )
+    return ProjectedSplats(
+        means2d, conics, depths, radii, torch.sigmoid(g["opacity_logits"]), colors, W, H
+    )
 
 
-def project_splats_torch(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int,
-                         near: float = 0.01) -> ProjectedSplats:
+def project_splats_torch(
+    gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int, near: float = 0.01
+) -> ProjectedSplats:
     """`project_splats` in vectorised torch with autograd (any device)."""
     dtype = gaussians["means"].dtype
     K, cam_from_world = camera.K[0].to(dtype), camera.cam_from_world[0].to(dtype)
     W, H = int(camera.width[0]), int(camera.height[0])
     means2d, conics, depths, radii = project_gaussians(
-        gaussians["means"], gaussians["quats"], gaussians["log_scales"], K, cam_from_world, W, H,
-        near)
+        gaussians["means"],
+        gaussians["quats"],
+        gaussians["log_scales"],
+        K,
+        cam_from_world,
+        W,
+        H,
+        near,
+    )
     sh = gaussians["sh_dc"]
     if sh_degree > 0:
         sh = torch.cat([sh, gaussians["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
     center = camera.centers[0].to(dtype)
     colors = sh_colors(gaussians["means"], sh, sh_degree, center)
-    return ProjectedSplats(means2d, conics, depths, radii,
-                           torch.sigmoid(gaussians["opacity_logits"]), colors, W, H)
+    return ProjectedSplats(
+        means2d, conics, depths, radii, torch.sigmoid(gaussians["opacity_logits"]), colors, W, H
+    )
 
 
 def composite_rgb(splats: ProjectedSplats, background: Tensor) -> tuple[Tensor, Tensor]:
     """rgb = sum_i T_i alpha_i c_i + T_final bg -> rgb (H, W, 3), acc = 1 - T_final (H, W)."""
     s = splats
-    image, T = rasterize_features(s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths,
-                                  s.width, s.height)
+    image, T = rasterize_features(
+        s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths, s.width, s.height
+    )
     return image + T[..., None] * background.to(image), 1 - T
 
 
@@ -82,7 +104,8 @@ def composite_rgbd(splats: ProjectedSplats, background: Tensor) -> dict[str, Ten
     a surface depth), acc (H, W); w_i = T_i alpha_i. Depth rides along as a 4th channel."""
     s = splats
     features = torch.cat([s.colors, s.depths[:, None]], -1)
-    image, T = rasterize_features(s.means2d, s.conics, s.opacities, features, s.radii, s.depths,
-                                  s.width, s.height)
+    image, T = rasterize_features(
+        s.means2d, s.conics, s.opacities, features, s.radii, s.depths, s.width, s.height
+    )
     rgb = image[..., :3] + T[..., None] * background.to(image)
     return {"rgb": rgb, "depth": image[..., 3], "acc": 1 - T}

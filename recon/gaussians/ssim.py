@@ -82,7 +82,11 @@ def _ssim_maps(m, n, bxx, byy, bxy, c1, c2, scale):
             a2, b2 = mm * mm + nn * nn + c1, sxx + syy + c2
             A, B = (2 * mm * nn + c1) / a2, (2 * sxy + c2) / b2
             total += A * B
-            gA, gsxx, gsxy = scale * B * 2 * (nn - A * mm) / a2, -scale * A * B / b2, scale * A * 2 / b2
+            gA, gsxx, gsxy = (
+                scale * B * 2 * (nn - A * mm) / a2,
+                -scale * A * B / b2,
+                scale * A * 2 / b2,
+            )
             g_m[c, i, j] = gA - 2 * mm * gsxx - nn * gsxy  # s_xx and s_xy also depend on m
             g_xx[c, i, j], g_xy[c, i, j] = gsxx, gsxy
     return total, g_m, g_xx, g_xy
@@ -94,7 +98,11 @@ class _Ssim(torch.autograd.Function):
         xs, ys = x.detach().contiguous().numpy(), y.detach().contiguous().numpy()
         taps = gaussian_taps().astype(xs.dtype)
         m, n = _blur_valid(xs, taps), _blur_valid(ys, taps)
-        bxx, byy, bxy = _blur_valid(xs * xs, taps), _blur_valid(ys * ys, taps), _blur_valid(xs * ys, taps)
+        bxx, byy, bxy = (
+            _blur_valid(xs * xs, taps),
+            _blur_valid(ys * ys, taps),
+            _blur_valid(xs * ys, taps),
+        )
         scale = 1.0 / m.size
         total, g_m, g_xx, g_xy = _ssim_maps(m, n, bxx, byy, bxy, K1**2, K2**2, scale)
         ctx.saved = (xs, ys, taps, g_m, g_xx, g_xy)
@@ -103,8 +111,11 @@ class _Ssim(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         xs, ys, taps, g_m, g_xx, g_xy = ctx.saved
-        dx = (_blur_transpose(g_m, taps) + 2 * xs * _blur_transpose(g_xx, taps)
-              + ys * _blur_transpose(g_xy, taps))
+        dx = (
+            _blur_transpose(g_m, taps)
+            + 2 * xs * _blur_transpose(g_xx, taps)
+            + ys * _blur_transpose(g_xy, taps)
+        )
         return grad * torch.from_numpy(dx), None
 
 
@@ -114,7 +125,7 @@ def ssim(x: Tensor, y: Tensor) -> Tensor:
     if x.device.type != "cpu":
         import pytorch_msssim
 
-        return pytorch_msssim.ssim(x[None], y[None], data_range=1.0, size_average=True,
-                                   win_size=WINDOW, win_sigma=SIGMA)
+        return pytorch_msssim.ssim(
+            x[None], y[None], data_range=1.0, size_average=True, win_size=WINDOW, win_sigma=SIGMA
+        )
     return _Ssim.apply(x, y.detach())
-

@@ -1,5 +1,5 @@
 """Tile binning: each splat is listed in every 16x16 tile its 3-sigma box touches, and the
-lists are ordered by (tile, depth) (seed, "Tile-based differentiable rasterization").
+lists are ordered by (tile, depth) (Kerbl et al. 2023, Sec. 6).
 
 Two twins produce the same `tile_start` / `gauss_ids`:
 - `bin_gaussians_sorted`: the reference's one global sort of (tile, depth-rank) keys, pure torch
@@ -23,8 +23,9 @@ def tile_grid(width: int, height: int, tile: int = TILE) -> tuple[int, int]:
     return (width + tile - 1) // tile, (height + tile - 1) // tile
 
 
-def tile_bounds(means2d: Tensor, radii: Tensor, width: int, height: int,
-                tile: int = TILE) -> Tensor:
+def tile_bounds(
+    means2d: Tensor, radii: Tensor, width: int, height: int, tile: int = TILE
+) -> Tensor:
     """Tiles overlapped by the box [mu - r, mu + r]^2: (G, 4) int64 (tx0, ty0, tx1, ty1), ends
     exclusive, clipped to the grid; empty (tx0 == tx1) for culled splats (r = 0).
 
@@ -40,8 +41,9 @@ def tile_bounds(means2d: Tensor, radii: Tensor, width: int, height: int,
     return torch.cat([lo, hi], -1).long()
 
 
-def bin_gaussians_sorted(bounds: Tensor, depths: Tensor, width: int, height: int,
-                         tile: int = TILE) -> tuple[Tensor, Tensor]:
+def bin_gaussians_sorted(
+    bounds: Tensor, depths: Tensor, width: int, height: int, tile: int = TILE
+) -> tuple[Tensor, Tensor]:
     """Reference binning by one global sort of key = tile_id * G + depth_rank.
 
     bounds (G, 4) from `tile_bounds`, depths (G,) -> tile_start (T + 1,) int64 (tile t's list is
@@ -84,8 +86,9 @@ def _counting_sort(order: np.ndarray, bounds: np.ndarray, tiles_x: int, n_tiles:
     return starts, ids
 
 
-def bin_gaussians(bounds: Tensor, depths: Tensor, width: int, height: int,
-                  tile: int = TILE) -> tuple[Tensor, Tensor]:
+def bin_gaussians(
+    bounds: Tensor, depths: Tensor, width: int, height: int, tile: int = TILE
+) -> tuple[Tensor, Tensor]:
     """Same result as `bin_gaussians_sorted` (CPU): stable depth argsort of the listed splats,
     then a stable counting sort by tile id. bounds (G, 4), depths (G,) -> tile_start, gauss_ids.
     """

@@ -14,7 +14,7 @@ import os
 import numpy as np
 import OpenEXR
 
-from recon.workspace.atomic import atomic_path
+from recon.io.atomic import atomic_path
 
 # Lossless. On the sample depth maps ZIP gives 19 % of the raw size, ZIPS 23 %, PIZ 55 %, RLE 79 %.
 _HEADER = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -24,7 +24,7 @@ def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray])
     """Write named (H, W) channels as float32 to one scanline EXR, atomically.
 
     The file appears complete or not at all: pixels go to a temporary sibling that is then
-    renamed over `path` (`recon.workspace.atomic.atomic_path`).
+    renamed over `path` (`recon.io.atomic.atomic_path`).
     """
     if not channels:
         raise ValueError("write_exr_channels needs at least one channel")

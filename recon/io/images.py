@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from recon.workspace.atomic import atomic_path
+from recon.io.atomic import atomic_path
 
 
 class ImageReadError(ValueError):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.workspace.atomic import atomic_path
+from recon.io.atomic import atomic_path
 
 
 def write_points_ply(path: Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from recon.workspace.atomic import atomic_path
+from recon.io.atomic import atomic_path
 
 MESH_FORMATS = (".ply", ".obj", ".glb")
 

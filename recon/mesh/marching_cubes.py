@@ -23,7 +23,7 @@ def choose_density_threshold(voxel_size: float, opacity: float = 0.5) -> float:
     """sigma* = -ln(1 - opacity) / voxel_size  (= ln 2 / voxel_size for opacity 0.5).
 
     The density at which a slab one voxel thick reaches `opacity` (alpha = 1 - exp(-sigma h),
-    seed "Quadrature"): the surface is where a ray crossing one voxel would be half stopped.
+    Max 1995): the surface is where a ray crossing one voxel would be half stopped.
     Chosen over a fixed sigma because a fixed value depends on the scene's scale, while this
     one is stated in the units of the grid it is used on. Example: the box [-1, 1]^3 at 256
     samples per side has h = 2/255 and sigma* = ln 2 * 127.5 = 88.4.

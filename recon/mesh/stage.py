@@ -20,32 +20,42 @@ from recon.mesh.marching_cubes import (
     soft_field_threshold,
 )
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
+from recon.models.registry import pick_device
+from recon.options import opt
 from recon.train.resolution import trained_resolution
-from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
+from recon.workspace.runs import load_run
 
 
 @dataclass(frozen=True)
 class MeshConfig:
-    method: str = "auto"  # auto | marching-cubes | tsdf
-    resolution: int = 256  # samples (marching cubes) or voxels (TSDF) along the box's longest side
-    threshold: float = 0.0  # marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel), or less for a field softer than that (soft_field_threshold)
-    threshold_views: int = 6  # training views rendered to find the density at the rendered surface (threshold 0)
-    truncation: float = 0.02  # TSDF truncation as a fraction of the box's longest side
-    min_component: float = 0.02  # components with fewer faces than this fraction are removed
-    format: str = "ply"  # ply | obj | glb
-    device: str = "auto"  # auto | cpu | cuda
+    method: str = opt(
+        "auto",
+        "auto: marching cubes on a density field (nerf/ngp/plenoxel), TSDF fusion "
+        "of rendered depth otherwise (3dgs)",
+        choices=("auto", "marching-cubes", "tsdf"),
+    )
+    resolution: int = opt(
+        256, "samples (marching cubes) or voxels (TSDF) along the box's longest side"
+    )
+    threshold: float = opt(
+        0.0,
+        "marching-cubes density level; 0 = ln 2 / voxel size (opacity 0.5 per voxel), or less for a field softer than that (soft_field_threshold)",
+    )
+    threshold_views: int = opt(
+        6, "training views rendered to find the density at the rendered surface (threshold 0)"
+    )
+    truncation: float = opt(0.02, "TSDF truncation as a fraction of the box's longest side")
+    min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
+    format: str = opt("ply", "mesh file format", choices=("ply", "obj", "glb"))
+    device: str = opt(
+        "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
+    )
 
 
-def _has_density(model) -> bool:
-    try:
-        model.density(torch.zeros(1, 3, device=next(iter(model.buffers())).device))
-        return True
-    except NotImplementedError:
-        return False
-
-
-def rendered_surface_density(model, scene, cfg: MeshConfig, device, downscale: int = 1) -> np.ndarray:
+def rendered_surface_density(
+    model, scene, cfg: MeshConfig, device, downscale: int = 1
+) -> np.ndarray:
     """Density (N,) at the expected depth of the pixels with opacity > 0.5 in a few training views."""
     from recon.cameras import camera_rays
 
@@ -67,22 +77,27 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     key = f"train/{run}"
     ws.require_fresh(key, force)
     device = pick_device(cfg.device)
-    model, scene, run_doc = load_model(ws, run, device)
+    model, scene, run_doc = load_run(ws, run, device)
     level = trained_resolution(run_doc, scene).downscale  # views are rendered at the training size
     aabb = scene.info.aabb.to(device)
     method = cfg.method
     if method == "auto":
-        method = "marching-cubes" if _has_density(model) else "tsdf"
+        method = "marching-cubes" if model.has_density else "tsdf"
     started = time.time()
     if method == "marching-cubes":
-        if not _has_density(model):
-            raise WorkspaceError(f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf")
+        if not model.has_density:
+            raise WorkspaceError(
+                f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf"
+            )
         side = float((aabb[1] - aabb[0]).max())
         threshold = cfg.threshold or soft_field_threshold(
-            choose_density_threshold(side / cfg.resolution), rendered_surface_density(model, scene, cfg, device, level))
+            choose_density_threshold(side / cfg.resolution),
+            rendered_surface_density(model, scene, cfg, device, level),
+        )
         color_fn = getattr(model, "color", None)
-        mesh = extract_density_mesh(model.density, aabb, cfg.resolution, threshold, color_fn=color_fn,
-                                    device=device)
+        mesh = extract_density_mesh(
+            model.density, aabb, cfg.resolution, threshold, color_fn=color_fn, device=device
+        )
         detail = {"threshold": threshold}
     elif method == "tsdf":
         idx = scene.split("train")
@@ -106,21 +121,36 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         raise WorkspaceError(f"the {method} mesh of run '{run}' is empty: is the run trained?")
     raw_faces = len(mesh.faces)
     mesh = remove_small_components(mesh, cfg.min_component)
-    sim = scene.scene_from_world  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
+    sim = (
+        scene.scene_from_world
+    )  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
     mesh = transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
     out_path = ws.mesh_dir(run) / f"mesh.{cfg.format}"
     write_mesh(mesh, out_path)
     stats = mesh_stats(mesh)
-    result = {"run": run, "method": method, "path": str(out_path), "faces_before_cleanup": raw_faces,
-              **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
-              "seconds": round(time.time() - started, 2), **detail}
-    atomic_write_json(ws.mesh_dir(run) / "mesh.json", result)
-    ws.record_stage(f"mesh/{run}", config=asdict(cfg), inputs={"model": model_path(ws, run)},
-                    outputs={"mesh": out_path}, upstream=[key], started=started, ended=time.time(),
-                    extra={"faces": result.get("faces")})
+    result = {
+        "run": run,
+        "method": method,
+        "path": str(out_path),
+        "faces_before_cleanup": raw_faces,
+        **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
+        "seconds": round(time.time() - started, 2),
+        **detail,
+    }
+    atomic_write_json(ws.mesh_json(run), result)
+    ws.record_stage(
+        f"mesh/{run}",
+        config=asdict(cfg),
+        inputs={"model": ws.model_path(run)},
+        outputs={"mesh": out_path},
+        upstream=[key],
+        started=started,
+        ended=time.time(),
+        extra={"faces": result.get("faces")},
+    )
     return result
 
 
 def read_mesh_json(ws: Workspace, run: str) -> dict | None:
-    p = ws.mesh_dir(run) / "mesh.json"
+    p = ws.mesh_json(run)
     return json.loads(p.read_text()) if p.exists() else None

@@ -1,5 +1,5 @@
 """Geometry metrics against ground truth: accuracy, completeness, Chamfer, precision / recall /
-F-score at a threshold tau, normal consistency (seed, "The evaluation-metric trap").
+F-score at a threshold tau, normal consistency (Knapitsch et al. 2017, "Tanks and Temples", Sec. 4).
 
 Distances are Euclidean (not squared), in the units of the inputs; nearest neighbours by
 scipy's cKDTree. Meshes are compared through points sampled uniformly by area.
@@ -93,8 +93,13 @@ def surface_points(geometry, n_samples: int, seed: int = 0) -> tuple[np.ndarray,
     return np.asarray(geometry, np.float64).reshape(-1, 3), None
 
 
-def observed_by_depth(points: np.ndarray, cam_from_points: np.ndarray, K: np.ndarray,
-                      depths: list[np.ndarray], tol: float) -> np.ndarray:
+def observed_by_depth(
+    points: np.ndarray,
+    cam_from_points: np.ndarray,
+    K: np.ndarray,
+    depths: list[np.ndarray],
+    tol: float,
+) -> np.ndarray:
     """(M,) bool: points (M, 3) that some view sees, by its ground-truth z-depth map.
 
     Point x is seen by view c when x_c = cam_from_points_c x (4 x 4, any similarity) lands in
@@ -118,8 +123,9 @@ def observed_by_depth(points: np.ndarray, cam_from_points: np.ndarray, K: np.nda
     return seen
 
 
-def geometry_metrics(pred, gt, tau: float, n_samples: int = 100_000, seed: int = 0,
-                     gt_observed_fn=None) -> dict:
+def geometry_metrics(
+    pred, gt, tau: float, n_samples: int = 100_000, seed: int = 0, gt_observed_fn=None
+) -> dict:
     """`point_cloud_metrics` of two meshes / point clouds / arrays; meshes are sampled with
     n_samples area-uniform points and their face normals (normal consistency then reported).
     gt_observed_fn: gt points (M, 3) -> (M,) bool (e.g. `observed_by_depth`), or None (all).

@@ -1,10 +1,12 @@
-"""Image metrics on held-out views: PSNR, SSIM and depth errors (seed, "The evaluation-metric trap").
+"""Image metrics on held-out views: PSNR, SSIM and depth errors (SSIM: Wang et al. 2004).
 
 Images are (..., H, W, 3) in [0, max_val]; leading dims are a batch and give one value per image.
 None of these measures geometry: pair them with `recon.metrics.geometry`.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytorch_msssim
@@ -19,8 +21,24 @@ def _as_tensor(x) -> Tensor:
     return x if isinstance(x, Tensor) else torch.as_tensor(np.asarray(x))
 
 
+LOG_MSE_FLOOR = 1e-10  # training logs cap PSNR at 100 dB (for MAX = 1) so the value stays finite
+
+
+def psnr_from_mse(mse, max_val: float = 1.0):
+    """PSNR = 10 log10(MAX^2 / MSE) from a mean squared error (float or tensor): the one PSNR
+    formula of the package. +inf at MSE = 0."""
+    if isinstance(mse, Tensor):
+        return 10.0 * torch.log10(max_val**2 / mse)
+    return math.inf if mse <= 0 else 10.0 * math.log10(max_val**2 / mse)
+
+
+def training_psnr(mse: float) -> float:
+    """PSNR of a training step or a quick held-out check, for the logs: finite (<= 100 dB)."""
+    return psnr_from_mse(max(float(mse), LOG_MSE_FLOOR))
+
+
 def psnr(pred, target, max_val: float = 1.0) -> Tensor:
-    """PSNR = 10 log10(MAX^2 / MSE), MSE = mean over H, W and channels (seed, eq. PSNR).
+    """PSNR = 10 log10(MAX^2 / MSE), MSE = mean over H, W and channels (the usual definition).
 
     pred, target: (..., H, W, 3) arrays or tensors. Returns (...,) float64; +inf when
     the images are identical. Example: a constant offset e gives PSNR = -20 log10(e / MAX).
@@ -29,7 +47,7 @@ def psnr(pred, target, max_val: float = 1.0) -> Tensor:
     if pred.shape != target.shape:
         raise ValueError(f"psnr: shapes differ, {tuple(pred.shape)} vs {tuple(target.shape)}")
     mse = (pred - target).square().mean(dim=(-3, -2, -1))
-    return 10.0 * torch.log10(max_val**2 / mse)  # mse = 0 -> +inf, as it should
+    return psnr_from_mse(mse, max_val)  # mse = 0 -> +inf, as it should
 
 
 def psnr_masked(pred, target, mask, max_val: float = 1.0) -> Tensor:
@@ -40,7 +58,7 @@ def psnr_masked(pred, target, mask, max_val: float = 1.0) -> Tensor:
         raise ValueError(f"psnr: shapes differ, {tuple(pred.shape)} vs {tuple(target.shape)}")
     w = _as_tensor(mask).to(device=pred.device, dtype=torch.float64).expand(pred.shape[:-1])
     mse = ((pred - target).square().mean(-1) * w).sum((-2, -1)) / w.sum((-2, -1))
-    return 10.0 * torch.log10(max_val**2 / mse)
+    return psnr_from_mse(mse, max_val)
 
 
 def border_mask(height: int, width: int, fraction: float) -> Tensor:

@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.workspace.atomic import atomic_path
+from recon.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 

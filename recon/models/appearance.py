@@ -45,8 +45,14 @@ def centred_corrections(deltas: Tensor) -> Tensor:
     return identity + deltas - deltas.mean(0, keepdim=True)
 
 
-def neighbour_correction(corrections: Tensor, centers: Tensor, directions: Tensor, center: Tensor,
-                         direction: Tensor, k: int = NEIGHBOURS) -> Tensor:
+def neighbour_correction(
+    corrections: Tensor,
+    centers: Tensor,
+    directions: Tensor,
+    center: Tensor,
+    direction: Tensor,
+    k: int = NEIGHBOURS,
+) -> Tensor:
     """The correction (3, 4) of a view at `center` (3,) looking along unit `direction` (3,):
     sum_i w_i [A_i | b_i] over the k training cameras nearest in d_i = |o_i - o| +
     DIRECTION_WEIGHT (1 - v_i . v), with w_i proportional to 1 / d_i (a training camera itself,
@@ -96,13 +102,20 @@ class AppearanceCorrection(nn.Module):
     def for_camera(self, rgb: Tensor, camera: Cameras) -> Tensor:
         """The rendered rgb (..., 3) of any single camera, corrected by `neighbour_correction`."""
         world_from_cam = camera.world_from_cam[0].to(self.deltas)
-        corr = neighbour_correction(centred_corrections(self.deltas), self.centers, self.directions,
-                                    world_from_cam[:3, 3], world_from_cam[:3, 2])
+        corr = neighbour_correction(
+            centred_corrections(self.deltas),
+            self.centers,
+            self.directions,
+            world_from_cam[:3, 3],
+            world_from_cam[:3, 2],
+        )
         return affine_colour(rgb, corr)
 
     @torch.no_grad()
     def spread(self) -> dict[str, float]:
         """How far the corrections are from the identity: the largest |A - I| entry and |b|."""
         corr = centred_corrections(self.deltas) - torch.eye(3, 4, device=self.deltas.device)
-        return {"appearance_max_gain_dev": float(corr[..., :3].abs().max()),
-                "appearance_max_offset": float(corr[..., 3].abs().max())}
+        return {
+            "appearance_max_gain_dev": float(corr[..., :3].abs().max()),
+            "appearance_max_offset": float(corr[..., 3].abs().max()),
+        }

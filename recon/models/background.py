@@ -36,7 +36,9 @@ class EnvironmentMap(nn.Module):
     def __init__(self, degree: int = 3, width: int = 32):
         super().__init__()
         self.degree = degree
-        self.net = nn.Sequential(nn.Linear(num_sh_bases(degree), width), nn.ReLU(), nn.Linear(width, 3))
+        self.net = nn.Sequential(
+            nn.Linear(num_sh_bases(degree), width), nn.ReLU(), nn.Linear(width, 3)
+        )
         nn.init.zeros_(self.net[2].weight)
         nn.init.zeros_(self.net[2].bias)
 

@@ -36,7 +36,9 @@ class SceneInfo:
     far: float
     points: Tensor | None = None
     point_colors: Tensor | None = None
-    scene_from_world: object | None = None  # sfm.normalize.Similarity, x_scene = s R x_world + t
+    scene_from_world: object | None = (
+        None  # cameras.similarity.Similarity, x_scene = s R x_world + t
+    )
 
 
 @dataclass
@@ -69,8 +71,9 @@ class TrainData:
             _, H, W, _ = self.images.shape
             w, h = max(1, W // factor), max(1, H // factor)
             small = np.stack([resize_area(im, w, h) for im in self.images.cpu().numpy()])
-            self._levels[factor] = TrainData(torch.from_numpy(small).to(self.images.device),
-                                             self.cameras.resized(w, h))
+            self._levels[factor] = TrainData(
+                torch.from_numpy(small).to(self.images.device), self.cameras.resized(w, h)
+            )
         return self._levels[factor]
 
     def rays(self) -> dict[str, Tensor]:
@@ -80,14 +83,17 @@ class TrainData:
             C, H, W, _ = self.images.shape
             uv = pixel_centers(W, H, device=self.images.device)
             o, d, z = rays_from_pixels(
-                uv[None], self.cameras.K[:, None, None].float(),
+                uv[None],
+                self.cameras.K[:, None, None].float(),
                 self.cameras.world_from_cam[:, None, None].float(),
             )
             cam = torch.arange(C, device=self.images.device)[:, None, None].expand(C, H, W)
             self._rays = {
-                "origins": o.reshape(-1, 3).contiguous(), "directions": d.reshape(-1, 3).contiguous(),
+                "origins": o.reshape(-1, 3).contiguous(),
+                "directions": d.reshape(-1, 3).contiguous(),
                 "z_per_t": z.expand(C, H, W).reshape(-1).contiguous(),
-                "rgb": self.images.reshape(-1, 3), "camera": cam.reshape(-1),
+                "rgb": self.images.reshape(-1, 3),
+                "camera": cam.reshape(-1),
             }
         return self._rays
 
@@ -99,7 +105,13 @@ class Model(nn.Module):
     code stays a plain loop; it returns scalars for the log (at least "loss").
     `render` returns, for ONE camera, "rgb" (H, W, 3), "depth" (H, W) as z-depth along the
     optical axis in normalized units, and "acc" (H, W) accumulated opacity.
+
+    What a model can do beyond that it declares in the capability flags below; stages ask them
+    (a mesh from the density field, a splat export) instead of testing a method's name.
     """
+
+    has_density: bool = False  # `density(points)` is defined: marching cubes on the field
+    exports_splats: bool = False  # `splats()` returns its Gaussians (the splat PLY export)
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         raise NotImplementedError
@@ -109,7 +121,12 @@ class Model(nn.Module):
         raise NotImplementedError
 
     def density(self, points: Tensor) -> Tensor:
-        """Volume density sigma (N,) at normalized points (N, 3); volume methods only."""
+        """Volume density sigma (N,) at normalized points (N, 3); models with `has_density`."""
+        raise NotImplementedError
+
+    def splats(self) -> dict:
+        """The Gaussians as numpy arrays in the scene frame (means (G, 3), quats wxyz (G, 4),
+        log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)); models with `exports_splats`."""
         raise NotImplementedError
 
     def training_state(self) -> dict:
@@ -151,6 +168,7 @@ class MethodSpec:
     build: Callable  # (config, scene: SceneInfo) -> Model
     presets: dict  # preset name -> {field: value} overrides of the config defaults
     resolution: ResolutionPolicy = ResolutionPolicy()  # how the working resolution is chosen
+    starts_from_splats: bool = False  # its config takes `init_ply`: a splat PLY to start from
 
 
 METHODS: dict[str, MethodSpec] = {}

@@ -32,19 +32,19 @@ from torch import Tensor, nn
 
 from recon.cameras import Cameras
 from recon.fields.encodings import positional_encoding, positional_encoding_dim
+from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import (
-    exp_decay_lr,
     mlp_dtype,
     points_in_box,
-    psnr,
     ray_bounds,
     render_image,
     sample_rays,
     scatter_rays,
-    set_lr,
 )
+from recon.models.schedules import exp_decay_lr, set_lr
+from recon.options import opt
 from recon.volrend import (
     OccupancyGrid,
     contract,
@@ -71,38 +71,68 @@ RAY_BUCKET = 64
 class NeRFConfig:
     """NeRF. Defaults are the CPU "fast" preset (same family, smaller); "paper" is the paper's."""
 
-    pos_bands: int = 10  # positional-encoding bands L of the position
-    dir_bands: int = 4  # positional-encoding bands L of the view direction
-    depth: int = 4  # layers of the position MLP (paper: 8)
-    width: int = 128  # width of the position MLP (paper: 256)
-    skip_layer: int = 2  # 0-based layer that receives [h, gamma(x)] (paper: 5, after layer 4's output)
-    n_coarse: int = 32  # stratified samples per ray for the coarse network (paper: 64)
-    n_fine: int = 64  # extra inverse-CDF samples per ray for the fine network (paper: 128)
-    rays_per_batch: int = 1024  # rays per training step (paper: 4096)
-    density_activation: str = "softplus"  # relu (paper) | softplus (smoother start, as mip-NeRF)
-    lr: float = 5e-3  # Adam learning rate at step 0 (paper: 5e-4; 10x learns faster on a CPU budget)
-    lr_final: float = 5e-5  # learning rate after lr_decay_steps (exponential decay)
-    lr_decay_steps: int = 8000  # steps of the learning-rate decay: ~30 min here (paper: 250k x 1000 / 500)
-    background: str = "auto"  # auto (learned for unbounded scenes) | scene (the capture's colour) | learned
-    precision: str = "auto"  # MLP matmuls: auto (bf16 where native: AMX / AVX512-BF16 / CUDA) | bf16 | fp32
-    occupancy_res: int = 64  # occupancy-grid resolution for empty-space skipping (0 = off, as the paper)
-    occupancy_every: int = 16  # steps between occupancy-grid updates
-    occupancy_warmup: int = 256  # steps with every cell kept occupied (NeRF learns its shape slower than ngp)
-    occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
-    occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities
-    occupancy_seed_dilation: int = 2  # start from the cells within this many of an SfM point in the box (-1 = all)
-    march_steps: int = 256  # marching steps along the box diagonal that find each ray's occupied range
-    chunk: int = 2048  # rays per chunk when rendering images
-    default_steps: int = 3000  # steps when no stopping rule is given
-    seed: int = 0  # seeds ray sampling and sample jitter
+    pos_bands: int = opt(10, "positional-encoding bands L of the position")
+    dir_bands: int = opt(4, "positional-encoding bands L of the view direction")
+    depth: int = opt(4, "layers of the position MLP (paper: 8)")
+    width: int = opt(128, "width of the position MLP (paper: 256)")
+    skip_layer: int = opt(
+        2, "0-based layer that receives [h, gamma(x)] (paper: 5, after layer 4's output)"
+    )
+    n_coarse: int = opt(32, "stratified samples per ray for the coarse network (paper: 64)")
+    n_fine: int = opt(64, "extra inverse-CDF samples per ray for the fine network (paper: 128)")
+    rays_per_batch: int = opt(1024, "rays per training step (paper: 4096)")
+    density_activation: str = opt(
+        "softplus", "relu (paper) | softplus (smoother start, as mip-NeRF)"
+    )
+    lr: float = opt(
+        5e-3, "Adam learning rate at step 0 (paper: 5e-4; 10x learns faster on a CPU budget)"
+    )
+    lr_final: float = opt(5e-5, "learning rate after lr_decay_steps (exponential decay)")
+    lr_decay_steps: int = opt(
+        8000, "steps of the learning-rate decay: ~30 min here (paper: 250k x 1000 / 500)"
+    )
+    background: str = opt(
+        "auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned"
+    )
+    precision: str = opt(
+        "auto", "MLP matmuls: auto (bf16 where native: AMX / AVX512-BF16 / CUDA) | bf16 | fp32"
+    )
+    occupancy_res: int = opt(
+        64, "occupancy-grid resolution for empty-space skipping (0 = off, as the paper)"
+    )
+    occupancy_every: int = opt(16, "steps between occupancy-grid updates")
+    occupancy_warmup: int = opt(
+        256, "steps with every cell kept occupied (NeRF learns its shape slower than ngp)"
+    )
+    occupancy_threshold: float = opt(0.01, "cells with opacity EMA below min(this, mean) are empty")
+    occupancy_decay: float = opt(0.9, "EMA decay per update of the cell opacities")
+    occupancy_seed_dilation: int = opt(
+        2, "start from the cells within this many of an SfM point in the box (-1 = all)"
+    )
+    march_steps: int = opt(
+        256, "marching steps along the box diagonal that find each ray's occupied range"
+    )
+    chunk: int = opt(2048, "rays per chunk when rendering images")
+    default_steps: int = opt(3000, "steps when no stopping rule is given")
+    seed: int = opt(0, "seeds ray sampling and sample jitter")
 
 
 PRESETS = {
     "fast": {},
-    "paper": {"depth": 8, "width": 256, "skip_layer": 5, "n_coarse": 64, "n_fine": 128,
-              "rays_per_batch": 4096, "density_activation": "relu", "lr": 5e-4, "lr_decay_steps": 500000,
-              "occupancy_res": 0,
-              "default_steps": 200000, "chunk": 4096},
+    "paper": {
+        "depth": 8,
+        "width": 256,
+        "skip_layer": 5,
+        "n_coarse": 64,
+        "n_fine": 128,
+        "rays_per_batch": 4096,
+        "density_activation": "relu",
+        "lr": 5e-4,
+        "lr_decay_steps": 500000,
+        "occupancy_res": 0,
+        "default_steps": 200000,
+        "chunk": 4096,
+    },
 }
 
 
@@ -114,7 +144,9 @@ class NeRFMLP(nn.Module):
         self.pos_dim = positional_encoding_dim(3, cfg.pos_bands)
         dir_dim = positional_encoding_dim(3, cfg.dir_bands)
         W, self.skip, self.activation = cfg.width, cfg.skip_layer, cfg.density_activation
-        dims = [self.pos_dim] + [W + (self.pos_dim if i == cfg.skip_layer else 0) for i in range(1, cfg.depth)]
+        dims = [self.pos_dim] + [
+            W + (self.pos_dim if i == cfg.skip_layer else 0) for i in range(1, cfg.depth)
+        ]
         self.layers = nn.ModuleList(nn.Linear(d, W) for d in dims)
         self.sigma = nn.Linear(W, 1)
         self.feature = nn.Linear(W, W)
@@ -143,16 +175,23 @@ class NeRFMLP(nn.Module):
         S = x_enc.shape[0] // R if R else 0
         first, W = self.color[0], self.feature.out_features
         per_sample = F.linear(self.feature(h), first.weight[:, :W], first.bias)
-        hidden = per_sample.view(R, S, first.out_features) + F.linear(d_enc, first.weight[:, W:])[:, None]
+        hidden = (
+            per_sample.view(R, S, first.out_features)
+            + F.linear(d_enc, first.weight[:, W:])[:, None]
+        )
         rgb = torch.sigmoid(self.color[2](F.relu(hidden)).float())
         return sigma, rgb.view(-1, 3)
 
 
 class NeRFModel(Model):
+    has_density = True
+
     def __init__(self, cfg: NeRFConfig, scene: SceneInfo):
         super().__init__()
         if cfg.density_activation not in ("relu", "softplus"):
-            raise ValueError(f"density_activation must be relu or softplus, got {cfg.density_activation!r}")
+            raise ValueError(
+                f"density_activation must be relu or softplus, got {cfg.density_activation!r}"
+            )
         self.cfg, self.scene = cfg, scene
         self.register_buffer("aabb", scene.aabb.clone().float())
         self.register_buffer("background", scene.background.clone().float())
@@ -162,12 +201,15 @@ class NeRFModel(Model):
         if self.occupancy is not None and seeds is not None and cfg.occupancy_seed_dilation >= 0:
             points_unit = scene_to_unit_cube(seeds.to(self.aabb), self.aabb, scene.unbounded)
             self.occupancy.seed(points_unit, cfg.occupancy_seed_dilation)
-        self.environment = EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
+        self.environment = (
+            EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
+        )
         self.dtype = mlp_dtype(self.aabb.device, cfg.precision)
         self.step_size = (self.aabb[1] - self.aabb[0]).norm().item() / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.optimizer = torch.optim.Adam(self.parameters(), lr=cfg.lr,
-                                          fused=self.aabb.device.type == "cpu" or None)
+        self.optimizer = torch.optim.Adam(
+            self.parameters(), lr=cfg.lr, fused=self.aabb.device.type == "cpu" or None
+        )
 
     def encode_points(self, points: Tensor) -> Tensor:
         """gamma of world points (N, 3): the box maps to [-1, 1]^3; unbounded scenes contract
@@ -179,7 +221,9 @@ class NeRFModel(Model):
 
     def _autocast(self):
         """Mixed precision for the MLPs (see `mlp_dtype`); a no-op in fp32."""
-        return torch.autocast(self.aabb.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32)
+        return torch.autocast(
+            self.aabb.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32
+        )
 
     def _sigma(self, net: NeRFMLP, x_enc: Tensor) -> Tensor:
         with self._autocast():
@@ -206,8 +250,9 @@ class NeRFModel(Model):
             return t_min, t_max
         u = uniform((o.shape[0],), t_min, self.generator) if jitter else None
         cone = 1 / 256 if self.scene.unbounded else 0.0
-        ri, t0, t1 = self.occupancy.march(o, d, t_min, t_max, self.aabb, self.scene.unbounded,
-                                          self.step_size, cone, u)
+        ri, t0, t1 = self.occupancy.march(
+            o, d, t_min, t_max, self.aabb, self.scene.unbounded, self.step_size, cone, u
+        )
         lo, hi = ray_spans(ri.to(o.device), t0.to(o), t1.to(o), o.shape[0], pad=self.step_size)
         lo, hi = torch.maximum(lo, t_min), torch.minimum(hi, t_max)
         return lo, torch.maximum(hi, lo)
@@ -225,11 +270,18 @@ class NeRFModel(Model):
         x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]  # (R, S, 3)
         x_enc = self.encode_points(x.reshape(-1, 3)).to(self.dtype)  # cast once: the skip reuses it
         d_enc = positional_encoding(d, self.cfg.dir_bands).to(self.dtype)
-        pad = -R % RAY_BUCKET  # zero rays up to a bucket: few distinct matmul shapes (see RAY_BUCKET)
+        pad = (
+            -R % RAY_BUCKET
+        )  # zero rays up to a bucket: few distinct matmul shapes (see RAY_BUCKET)
         with self._autocast():
             sigma, rgb = net(F.pad(x_enc, (0, 0, 0, pad * S)), F.pad(d_enc, (0, 0, 0, pad)))
-        sigma, rgb = sigma[:R * S], rgb[:R * S]  # the padded rows get no gradient: weights see none
-        return volume_render(sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=self.background_colour(d))
+        sigma, rgb = (
+            sigma[: R * S],
+            rgb[: R * S],
+        )  # the padded rows get no gradient: weights see none
+        return volume_render(
+            sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=self.background_colour(d)
+        )
 
     def _render_hits(self, o: Tensor, d: Tensor, t_min: Tensor, t_max: Tensor, jitter: bool):
         """Coarse render, inverse-CDF fine samples, fine render -> (coarse, fine) VolumeRender."""
@@ -255,9 +307,17 @@ class NeRFModel(Model):
         missed_bg = None  # the missed rays see the background: the fixed colour or the environment
         if self.environment is not None and hit.numel() < R:
             missed_bg = self.environment(d)
-        return tuple({"rgb": self._fill_missed(scatter_rays(p.rgb, hit, R, self.background), is_hit, missed_bg),
-                      "depth": scatter_rays(p.depth, hit, R, None),
-                      "acc": scatter_rays(p.acc, hit, R, None), "hit": is_hit} for p in passes)
+        return tuple(
+            {
+                "rgb": self._fill_missed(
+                    scatter_rays(p.rgb, hit, R, self.background), is_hit, missed_bg
+                ),
+                "depth": scatter_rays(p.depth, hit, R, None),
+                "acc": scatter_rays(p.acc, hit, R, None),
+                "hit": is_hit,
+            }
+            for p in passes
+        )
 
     @staticmethod
     def _fill_missed(rgb: Tensor, is_hit: Tensor, background: Tensor | None) -> Tensor:
@@ -267,8 +327,14 @@ class NeRFModel(Model):
     def _update_occupancy(self, step: int) -> None:
         cfg = self.cfg
         if self.occupancy is not None and step % cfg.occupancy_every == 0:
-            self.occupancy.update(self.sigma_unit, self.step_size, step < cfg.occupancy_warmup,
-                                  cfg.occupancy_decay, cfg.occupancy_threshold, generator=self.generator)
+            self.occupancy.update(
+                self.sigma_unit,
+                self.step_size,
+                step < cfg.occupancy_warmup,
+                cfg.occupancy_decay,
+                cfg.occupancy_threshold,
+                generator=self.generator,
+            )
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         cfg = self.cfg
@@ -284,8 +350,12 @@ class NeRFModel(Model):
             loss.backward()
             self.optimizer.step()
         hit_fraction = fine["hit"].float().mean().item()
-        out = {"loss": loss.item(), "psnr": psnr(mse_f.item()), "psnr_coarse": psnr(mse_c.item()),
-               "samples_per_ray": (cfg.n_coarse * 2 + cfg.n_fine) * hit_fraction}
+        out = {
+            "loss": loss.item(),
+            "psnr": training_psnr(mse_f.item()),
+            "psnr_coarse": training_psnr(mse_c.item()),
+            "samples_per_ray": (cfg.n_coarse * 2 + cfg.n_fine) * hit_fraction,
+        }
         if self.occupancy is not None:
             out["occupied"] = self.occupancy.occupancy_fraction()
         return out
@@ -320,6 +390,11 @@ def build(config: NeRFConfig, scene: SceneInfo) -> NeRFModel:
 
 
 # about 3.3k rays/s (1,024-ray batches at 3.2 steps/s on lego-200, 2 threads); one pass over the pixels
-RESOLUTION = ResolutionPolicy(pixels_per_s=3.3e3, pixels_per_step=1024, min_epochs=1.0, max_side=800)
-SPEC = register(MethodSpec(name="nerf", config_cls=NeRFConfig, build=build, presets=PRESETS,
-                           resolution=RESOLUTION))
+RESOLUTION = ResolutionPolicy(
+    pixels_per_s=3.3e3, pixels_per_step=1024, min_epochs=1.0, max_side=800
+)
+SPEC = register(
+    MethodSpec(
+        name="nerf", config_cls=NeRFConfig, build=build, presets=PRESETS, resolution=RESOLUTION
+    )
+)

@@ -28,19 +28,19 @@ from torch import Tensor, nn
 from recon.cameras import Cameras
 from recon.fields.hashgrid import HashGrid
 from recon.fields.sh import num_sh_bases, sh_basis
+from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import (
-    exp_decay_lr,
     mlp,
     points_in_box,
-    psnr,
     ray_bounds,
     render_image,
     sample_rays,
-    set_lr,
     trunc_exp,
 )
+from recon.models.schedules import exp_decay_lr, set_lr
+from recon.options import opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, terminated_mask, volume_render
 from recon.volrend.distortion import distortion_loss
 from recon.volrend.occupancy import marching_distance
@@ -51,45 +51,75 @@ from recon.volrend.samplers import uniform
 class NGPConfig:
     """Instant-NGP. Defaults are the CPU "fast" preset; "paper" restores the paper's sizes."""
 
-    n_levels: int = 16  # hash-grid levels L
-    n_features: int = 2  # features per level F
-    log2_table_size: int = 17  # log2 of the per-level hash-table size T (paper: 19)
-    n_min: int = 16  # coarsest grid resolution N_min
-    n_max: int = 1024  # finest grid resolution N_max (paper: 2048 x scene scale)
-    hidden: int = 64  # width of the hidden layers of both MLPs
-    geo_features: int = 15  # geometry-feature channels passed from the density to the colour MLP
-    sh_degree: int = 3  # SH degree of the view-direction encoding (3 = the paper's 16 coefficients)
-    rays_per_batch: int = 1024  # rays of the first training step
-    samples_per_batch: int = 1 << 16  # target samples per step: the ray batch adapts (0 = fixed)
-    march_steps: int = 256  # marching steps along the scene box diagonal (paper: 1024)
-    cone_angle: float = 1 / 256  # unbounded scenes only: step grows as t * cone_angle
-    disparity_from: float = 1.0  # unbounded: beyond this many box diagonals steps grow as t^2, linear in 1/t (0 = never)
-    max_samples_per_ray: int = 512  # at most this many marched samples per ray, front to back (0 = no cap)
-    background: str = "auto"  # auto (learned for unbounded scenes) | scene (the capture's colour) | learned
-    occupancy_res: int = 64  # occupancy grid resolution (paper: 128)
-    occupancy_every: int = 16  # steps between occupancy-grid updates
-    occupancy_warmup: int = 64  # steps during which every cell is updated and kept occupied (paper: 256)
-    occupancy_threshold: float = 0.01  # cells with opacity EMA below min(this, mean) are empty
-    occupancy_decay: float = 0.9  # EMA decay per update of the cell opacities (paper: 0.95)
-    occupancy_seed_dilation: int = 2  # start from the cells within this many of an SfM point in the box (-1 = all)
-    eps_transmittance: float = 1e-4  # early ray termination threshold
-    distortion: str = "auto"  # auto (on for unbounded scenes) | on | off: mip-NeRF 360's distortion loss
-    distortion_weight: float = 0.01  # its weight, on the near-to-far distance mapped to [0, 1]
-    lr: float = 1e-2  # Adam learning rate (grid and MLPs)
-    lr_final: float = 1e-3  # learning rate reached after lr_decay_steps (exponential decay)
-    lr_decay_steps: int = 5000  # steps of the learning-rate decay
-    weight_decay: float = 1e-6  # L2 on the MLP weights (not the grid)
-    chunk: int = 1024  # rays per chunk when rendering images (1024 keeps the MLP activations in cache)
-    default_steps: int = 2000  # steps when no stopping rule is given
-    seed: int = 0  # seeds ray sampling, marching jitter and occupancy updates
+    n_levels: int = opt(16, "hash-grid levels L")
+    n_features: int = opt(2, "features per level F")
+    log2_table_size: int = opt(17, "log2 of the per-level hash-table size T (paper: 19)")
+    n_min: int = opt(16, "coarsest grid resolution N_min")
+    n_max: int = opt(1024, "finest grid resolution N_max (paper: 2048 x scene scale)")
+    hidden: int = opt(64, "width of the hidden layers of both MLPs")
+    geo_features: int = opt(
+        15, "geometry-feature channels passed from the density to the colour MLP"
+    )
+    sh_degree: int = opt(
+        3, "SH degree of the view-direction encoding (3 = the paper's 16 coefficients)"
+    )
+    rays_per_batch: int = opt(1024, "rays of the first training step")
+    samples_per_batch: int = opt(
+        1 << 16, "target samples per step: the ray batch adapts (0 = fixed)"
+    )
+    march_steps: int = opt(256, "marching steps along the scene box diagonal (paper: 1024)")
+    cone_angle: float = opt(1 / 256, "unbounded scenes only: step grows as t * cone_angle")
+    disparity_from: float = opt(
+        1.0,
+        "unbounded: beyond this many box diagonals steps grow as t^2, linear in 1/t (0 = never)",
+    )
+    max_samples_per_ray: int = opt(
+        512, "at most this many marched samples per ray, front to back (0 = no cap)"
+    )
+    background: str = opt(
+        "auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned"
+    )
+    occupancy_res: int = opt(64, "occupancy grid resolution (paper: 128)")
+    occupancy_every: int = opt(16, "steps between occupancy-grid updates")
+    occupancy_warmup: int = opt(
+        64, "steps during which every cell is updated and kept occupied (paper: 256)"
+    )
+    occupancy_threshold: float = opt(0.01, "cells with opacity EMA below min(this, mean) are empty")
+    occupancy_decay: float = opt(0.9, "EMA decay per update of the cell opacities (paper: 0.95)")
+    occupancy_seed_dilation: int = opt(
+        2, "start from the cells within this many of an SfM point in the box (-1 = all)"
+    )
+    eps_transmittance: float = opt(1e-4, "early ray termination threshold")
+    distortion: str = opt(
+        "auto", "auto (on for unbounded scenes) | on | off: mip-NeRF 360's distortion loss"
+    )
+    distortion_weight: float = opt(0.01, "its weight, on the near-to-far distance mapped to [0, 1]")
+    lr: float = opt(1e-2, "Adam learning rate (grid and MLPs)")
+    lr_final: float = opt(1e-3, "learning rate reached after lr_decay_steps (exponential decay)")
+    lr_decay_steps: int = opt(5000, "steps of the learning-rate decay")
+    weight_decay: float = opt(1e-6, "L2 on the MLP weights (not the grid)")
+    chunk: int = opt(
+        1024, "rays per chunk when rendering images (1024 keeps the MLP activations in cache)"
+    )
+    default_steps: int = opt(2000, "steps when no stopping rule is given")
+    seed: int = opt(0, "seeds ray sampling, marching jitter and occupancy updates")
 
 
 PRESETS = {
     "fast": {},
-    "paper": {"log2_table_size": 19, "n_max": 2048, "rays_per_batch": 4096, "samples_per_batch": 1 << 18,
-              "march_steps": 1024,
-              "occupancy_res": 128, "occupancy_decay": 0.95, "occupancy_warmup": 256,
-              "lr_decay_steps": 20000, "default_steps": 35000, "chunk": 16384},
+    "paper": {
+        "log2_table_size": 19,
+        "n_max": 2048,
+        "rays_per_batch": 4096,
+        "samples_per_batch": 1 << 18,
+        "march_steps": 1024,
+        "occupancy_res": 128,
+        "occupancy_decay": 0.95,
+        "occupancy_warmup": 256,
+        "lr_decay_steps": 20000,
+        "default_steps": 35000,
+        "chunk": 16384,
+    },
 }
 
 
@@ -99,7 +129,9 @@ class NGPField(nn.Module):
     def __init__(self, cfg: NGPConfig):
         super().__init__()
         self.sh_degree = cfg.sh_degree
-        self.grid = HashGrid(cfg.n_levels, cfg.n_features, cfg.log2_table_size, cfg.n_min, cfg.n_max)
+        self.grid = HashGrid(
+            cfg.n_levels, cfg.n_features, cfg.log2_table_size, cfg.n_min, cfg.n_max
+        )
         self.density_mlp = mlp(self.grid.out_dim, cfg.hidden, 1, 1 + cfg.geo_features)
         self.color_mlp = mlp(cfg.geo_features + num_sh_bases(cfg.sh_degree), cfg.hidden, 2, 3)
 
@@ -129,6 +161,8 @@ def uses_distortion(mode: str, unbounded: bool) -> bool:
 
 
 class NGPModel(Model):
+    has_density = True
+
     def __init__(self, cfg: NGPConfig, scene: SceneInfo):
         super().__init__()
         self.cfg, self.scene = cfg, scene
@@ -139,8 +173,12 @@ class NGPModel(Model):
         seeds = points_in_box(scene)
         if seeds is not None and cfg.occupancy_seed_dilation >= 0:
             self.occupancy.seed(self.to_unit(seeds.to(self.aabb)), cfg.occupancy_seed_dilation)
-        self.environment = EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
-        self.distortion_weight = cfg.distortion_weight if uses_distortion(cfg.distortion, scene.unbounded) else 0.0
+        self.environment = (
+            EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
+        )
+        self.distortion_weight = (
+            cfg.distortion_weight if uses_distortion(cfg.distortion, scene.unbounded) else 0.0
+        )
         diag = (self.aabb[1] - self.aabb[0]).norm().item()
         self.step_size = diag / cfg.march_steps
         self.disparity_from = diag * cfg.disparity_from if cfg.disparity_from > 0 else math.inf
@@ -150,10 +188,15 @@ class NGPModel(Model):
         if self.environment is not None:
             mlp_params += list(self.environment.parameters())
         self.optimizer = torch.optim.Adam(
-            [{"params": [self.field.grid.table], "weight_decay": 0.0},
-             {"params": mlp_params, "weight_decay": cfg.weight_decay}],
-            lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15,
-            fused=self.aabb.device.type == "cpu" or None,  # one pass over the table: ~1.5x less optimizer time
+            [
+                {"params": [self.field.grid.table], "weight_decay": 0.0},
+                {"params": mlp_params, "weight_decay": cfg.weight_decay},
+            ],
+            lr=cfg.lr,
+            betas=(0.9, 0.99),
+            eps=1e-15,
+            fused=self.aabb.device.type == "cpu"
+            or None,  # one pass over the table: ~1.5x less optimizer time
         )
 
     # ---- geometry of the scene ----------------------------------------------------------------
@@ -176,9 +219,19 @@ class NGPModel(Model):
         u = uniform((origins.shape[0],), t_min, self.generator) if jitter else None
         cone = self.cfg.cone_angle if self.scene.unbounded else 0.0
         with torch.no_grad():
-            ri, t0, t1 = self.occupancy.march(origins, directions, t_min, t_max, self.aabb,
-                                              self.scene.unbounded, self.step_size, cone, u,
-                                              self.cfg.max_samples_per_ray, self.disparity_from)
+            ri, t0, t1 = self.occupancy.march(
+                origins,
+                directions,
+                t_min,
+                t_max,
+                self.aabb,
+                self.scene.unbounded,
+                self.step_size,
+                cone,
+                u,
+                self.cfg.max_samples_per_ray,
+                self.disparity_from,
+            )
             x = self.to_unit(origins[ri] + (0.5 * (t0 + t1))[:, None] * directions[ri])
         return ri, t0, t1, x
 
@@ -189,7 +242,9 @@ class NGPModel(Model):
         cone = self.cfg.cone_angle if self.scene.unbounded else 0.0
         ends = torch.tensor([self.scene.near, self.scene.far], dtype=t.dtype, device=t.device)
         s_near, s_far = marching_distance(ends, self.step_size, cone, self.disparity_from)
-        return (marching_distance(t, self.step_size, cone, self.disparity_from) - s_near) / (s_far - s_near)
+        return (marching_distance(t, self.step_size, cone, self.disparity_from) - s_near) / (
+            s_far - s_near
+        )
 
     def _render_rays_train(self, origins: Tensor, directions: Tensor):
         """Occupied samples; ONE density pass with gradients over all of them, whose values also
@@ -214,14 +269,22 @@ class NGPModel(Model):
         keep = terminated_mask(sigma, t0, t1, ri, self.cfg.eps_transmittance)
         ri, t0, t1, sigma = ri[keep], t0[keep], t1[keep], sigma[keep]
         rgb = self.field.color(geo[keep], self.field.encode_directions(directions)[ri])
-        return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], self.background_colour(directions))
+        return volume_render(
+            sigma, rgb, t0, t1, ri, origins.shape[0], self.background_colour(directions)
+        )
 
     # ---- Model interface ---------------------------------------------------------------------
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         cfg = self.cfg
         if step % cfg.occupancy_every == 0:
-            self.occupancy.update(self.field.sigma, self.step_size, step < cfg.occupancy_warmup,
-                                  cfg.occupancy_decay, cfg.occupancy_threshold, generator=self.generator)
+            self.occupancy.update(
+                self.field.sigma,
+                self.step_size,
+                step < cfg.occupancy_warmup,
+                cfg.occupancy_decay,
+                cfg.occupancy_threshold,
+                generator=self.generator,
+            )
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         n_rays = self.n_rays
         batch = sample_rays(data.rays(), n_rays, self.generator)
@@ -231,7 +294,10 @@ class NGPModel(Model):
         loss = mse
         if self.distortion_weight > 0:
             s0, s1 = self.normalized_distance(t0), self.normalized_distance(t1)
-            loss = loss + self.distortion_weight * distortion_loss(out.weights, s0, s1, ri, n_rays).mean()
+            loss = (
+                loss
+                + self.distortion_weight * distortion_loss(out.weights, s0, s1, ri, n_rays).mean()
+            )
         self.optimizer.zero_grad(set_to_none=True)
         if loss.requires_grad:  # no sample at all (every ray missed): nothing to learn
             loss.backward()
@@ -239,9 +305,16 @@ class NGPModel(Model):
         mse = mse.item()
         if cfg.samples_per_batch > 0:  # Instant-NGP: keep the samples per step, not the rays, fixed
             wanted = cfg.samples_per_batch * n_rays / max(n_samples, 1)
-            self.n_rays = int(min(max(wanted, n_rays / 2, 64), 2 * n_rays, 1 << 16))  # at most x2 a step
-        return {"loss": loss.item(), "psnr": psnr(mse), "samples_per_ray": n_samples / n_rays, "rays": n_rays,
-                "occupied": self.occupancy.occupancy_fraction()}
+            self.n_rays = int(
+                min(max(wanted, n_rays / 2, 64), 2 * n_rays, 1 << 16)
+            )  # at most x2 a step
+        return {
+            "loss": loss.item(),
+            "psnr": training_psnr(mse),
+            "samples_per_ray": n_samples / n_rays,
+            "rays": n_rays,
+            "occupied": self.occupancy.occupancy_fraction(),
+        }
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -252,8 +325,11 @@ class NGPModel(Model):
         return render_image(rays_fn, camera.to(self.aabb.device), self.cfg.chunk)
 
     def training_state(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
-                "n_rays": self.n_rays}
+        return {
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "n_rays": self.n_rays,
+        }
 
     def load_state_dict(self, state: dict, strict: bool = True):
         """A run saved before the learned background existed (no `environment.*` entries) was
@@ -268,8 +344,10 @@ class NGPModel(Model):
         self.n_rays = int(state["n_rays"])
 
     def stats(self) -> dict[str, float]:
-        return {"parameters": float(sum(p.numel() for p in self.parameters())),
-                "occupied_fraction": self.occupancy.occupancy_fraction()}
+        return {
+            "parameters": float(sum(p.numel() for p in self.parameters())),
+            "occupied_fraction": self.occupancy.occupancy_fraction(),
+        }
 
 
 def build(config: NGPConfig, scene: SceneInfo) -> NGPModel:
@@ -278,5 +356,8 @@ def build(config: NGPConfig, scene: SceneInfo) -> NGPModel:
 
 # about 10k rays/s (~2.5k-ray batches of 64k samples at 4.2 steps/s on lego-200, 2 threads)
 RESOLUTION = ResolutionPolicy(pixels_per_s=10e3, pixels_per_step=2500, min_epochs=1.0, max_side=800)
-SPEC = register(MethodSpec(name="ngp", config_cls=NGPConfig, build=build, presets=PRESETS,
-                           resolution=RESOLUTION))
+SPEC = register(
+    MethodSpec(
+        name="ngp", config_cls=NGPConfig, build=build, presets=PRESETS, resolution=RESOLUTION
+    )
+)

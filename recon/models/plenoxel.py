@@ -1,4 +1,4 @@
-"""Plenoxels (Fridovich-Keil et al. 2022; seed "Plenoxels and DVGO"): a sparse voxel grid of
+"""Plenoxels (Fridovich-Keil et al. 2022, "Plenoxels: Radiance Fields without Neural Networks"): a sparse voxel grid of
 density + spherical-harmonic colour, trilinear interpolation, NO neural network, a total
 variation regulariser, coarse-to-fine upsampling and pruning of empty voxels.
 
@@ -8,17 +8,20 @@ termination, and `volrend.volume_render` for the quadrature.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from recon.cameras import Cameras, camera_rays
+from recon.cameras import Cameras
 from recon.fields.sh import C0, eval_sh, num_sh_bases
 from recon.fields.voxels import SparseVoxelGrid
+from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.raymarch import render_image
+from recon.models.schedules import exp_decay_lr
+from recon.options import opt
 from recon.volrend import (
     OccupancyGrid,
     ray_aabb_intersect,
@@ -30,29 +33,39 @@ from recon.volrend import (
 
 @dataclass(frozen=True)
 class PlenoxelConfig:
-    resolutions: tuple = (32, 64, 128, 256)  # coarse-to-fine lattice sizes
-    upsample_steps: tuple = (150, 500, 1500)  # steps at which the grid moves to the next resolution
-    sh_degree: int = 2  # spherical-harmonic degree of the colour
-    rays_per_batch: int = 4096  # rays of the first training step
-    samples_per_batch: int = 1 << 18  # target samples per step: the ray batch adapts (0 = fixed rays)
-    max_rays_per_batch: int = 16384  # upper bound of the adaptive ray batch
-    step_voxels: float = 0.5  # marching step, in voxels of the current lattice
-    lr_density: float = 0.1  # Adam learning rate of density (in per-voxel optical units)
-    lr_sh: float = 0.02  # Adam learning rate of SH coefficients
-    lr_decay_steps: int = 5000  # learning rates decay by 10x over this many steps (exponentially)
-    tv_density: float = 1e-3  # total-variation weight on density
-    tv_sh: float = 1e-3  # total-variation weight on SH coefficients
-    tv_fraction: float = 0.02  # fraction of voxels per step that the TV term samples
-    prune_density: float = 0.05  # voxels whose 3x3x3 neighbourhood stays below this density are pruned
-    occupancy_every: int = 16  # occupancy-grid update interval (steps)
-    occupancy_res: int = 64  # occupancy-grid resolution
-    cone_angle: float = 0.0  # >0 grows steps with distance (used for unbounded scenes)
-    eps_transmittance: float = 1e-4  # early ray termination threshold
-    chunk: int = 16384  # rays per chunk when rendering images
-    default_steps: int = 4000  # steps when no stopping rule is given
+    resolutions: tuple = opt((32, 64, 128, 256), "coarse-to-fine lattice sizes")
+    upsample_steps: tuple = opt(
+        (150, 500, 1500), "steps at which the grid moves to the next resolution"
+    )
+    sh_degree: int = opt(2, "spherical-harmonic degree of the colour")
+    rays_per_batch: int = opt(4096, "rays of the first training step")
+    samples_per_batch: int = opt(
+        1 << 18, "target samples per step: the ray batch adapts (0 = fixed rays)"
+    )
+    max_rays_per_batch: int = opt(16384, "upper bound of the adaptive ray batch")
+    step_voxels: float = opt(0.5, "marching step, in voxels of the current lattice")
+    lr_density: float = opt(0.1, "Adam learning rate of density (in per-voxel optical units)")
+    lr_sh: float = opt(0.02, "Adam learning rate of SH coefficients")
+    lr_decay_steps: int = opt(
+        5000, "learning rates decay by 10x over this many steps (exponentially)"
+    )
+    tv_density: float = opt(1e-3, "total-variation weight on density")
+    tv_sh: float = opt(1e-3, "total-variation weight on SH coefficients")
+    tv_fraction: float = opt(0.02, "fraction of voxels per step that the TV term samples")
+    prune_density: float = opt(
+        0.05, "voxels whose 3x3x3 neighbourhood stays below this density are pruned"
+    )
+    occupancy_every: int = opt(16, "occupancy-grid update interval (steps)")
+    occupancy_res: int = opt(64, "occupancy-grid resolution")
+    cone_angle: float = opt(0.0, ">0 grows steps with distance (used for unbounded scenes)")
+    eps_transmittance: float = opt(1e-4, "early ray termination threshold")
+    chunk: int = opt(16384, "rays per chunk when rendering images")
+    default_steps: int = opt(4000, "steps when no stopping rule is given")
 
 
 class PlenoxelModel(Model):
+    has_density = True
+
     def __init__(self, cfg: PlenoxelConfig, scene: SceneInfo):
         super().__init__()
         self.cfg, self.scene = cfg, scene
@@ -60,7 +73,9 @@ class PlenoxelModel(Model):
         self.register_buffer("background", scene.background.clone())
         self.register_buffer("level", torch.zeros((), dtype=torch.long))
         k = num_sh_bases(cfg.sh_degree)
-        self.grid = SparseVoxelGrid(cfg.resolutions[0], {"density": 1, "sh": 3 * k}, {"density": 0.1})
+        self.grid = SparseVoxelGrid(
+            cfg.resolutions[0], {"density": 1, "sh": 3 * k}, {"density": 0.1}
+        )
         self.occupancy = OccupancyGrid(cfg.occupancy_res)
         self.generator = torch.Generator().manual_seed(0)
         self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
@@ -92,7 +107,9 @@ class PlenoxelModel(Model):
         with torch.no_grad():
             out = []
             for p in points.split(1 << 18):
-                sh = self.grid.query(self.to_unit(p), ["sh"])["sh"].view(-1, 3, num_sh_bases(self.cfg.sh_degree))
+                sh = self.grid.query(self.to_unit(p), ["sh"])["sh"].view(
+                    -1, 3, num_sh_bases(self.cfg.sh_degree)
+                )
                 out.append(torch.sigmoid(sh[:, :, 0] * C0))
             return torch.cat(out)
 
@@ -119,12 +136,15 @@ class PlenoxelModel(Model):
             t_min = t_min.clamp_min(self.scene.near)
             cone = self.cfg.cone_angle
         u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
-        ray_idx, t0, t1 = self.occupancy.march(origins, dirs, t_min, t_max, self.aabb, self.scene.unbounded,
-                                               self._step_t(), cone, u)
+        ray_idx, t0, t1 = self.occupancy.march(
+            origins, dirs, t_min, t_max, self.aabb, self.scene.unbounded, self._step_t(), cone, u
+        )
         if ray_idx.numel():
             with torch.no_grad():  # cheap density pre-pass for early termination
                 mids = 0.5 * (t0 + t1)
-                sig = self._sigma_unit(self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx]))
+                sig = self._sigma_unit(
+                    self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx])
+                )
                 keep = terminated_mask(sig, t0, t1, ray_idx, self.cfg.eps_transmittance) & (sig > 0)
             ray_idx, t0, t1 = ray_idx[keep], t0[keep], t1[keep]
         mids = 0.5 * (t0 + t1)
@@ -137,10 +157,14 @@ class PlenoxelModel(Model):
     def _make_optimizer(self) -> None:
         # dense fused Adam: pruning keeps the grid small, and one fused pass beats coalescing
         # sparse gradients with many repeated rows (measured: SparseAdam spent 70 % of a step there)
-        self.optimizer = torch.optim.Adam([
-            {"params": [self.grid.data["density"]], "lr": self.cfg.lr_density},
-            {"params": [self.grid.data["sh"]], "lr": self.cfg.lr_sh},
-        ], eps=1e-15, fused=self.aabb.device.type == "cpu" or None)
+        self.optimizer = torch.optim.Adam(
+            [
+                {"params": [self.grid.data["density"]], "lr": self.cfg.lr_density},
+                {"params": [self.grid.data["sh"]], "lr": self.cfg.lr_sh},
+            ],
+            eps=1e-15,
+            fused=self.aabb.device.type == "cpu" or None,
+        )
         self._base_lrs = [self.cfg.lr_density, self.cfg.lr_sh]
 
     def _tv_loss(self) -> Tensor:
@@ -159,11 +183,16 @@ class PlenoxelModel(Model):
 
     def _maybe_upsample(self, step: int) -> None:
         lvl = int(self.level)
-        if lvl + 1 < len(self.cfg.resolutions) and lvl < len(self.cfg.upsample_steps) \
-                and step >= self.cfg.upsample_steps[lvl]:
+        if (
+            lvl + 1 < len(self.cfg.resolutions)
+            and lvl < len(self.cfg.upsample_steps)
+            and step >= self.cfg.upsample_steps[lvl]
+        ):
             self.prune()
             new_res = self.cfg.resolutions[lvl + 1]
-            scale = new_res / self.res  # keep optical thickness per unit length: d scales with 1/res
+            scale = (
+                new_res / self.res
+            )  # keep optical thickness per unit length: d scales with 1/res
             self.grid.upsample(new_res, lambda occ: occ)
             self.grid.data["density"].data /= scale
             self.level.fill_(lvl + 1)
@@ -183,7 +212,9 @@ class PlenoxelModel(Model):
         self._maybe_upsample(step)
         if step % self.cfg.occupancy_every == 0:
             cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
-            self.occupancy.update(self._sigma_unit, cell, warmup=step < 32, generator=self.generator)
+            self.occupancy.update(
+                self._sigma_unit, cell, warmup=step < 32, generator=self.generator
+            )
         rays = data.rays()
         n = rays["rgb"].shape[0]
         n_rays = self.n_rays
@@ -193,27 +224,31 @@ class PlenoxelModel(Model):
         loss = mse + self._tv_loss()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        decay = 0.1 ** min(step / max(self.cfg.lr_decay_steps, 1), 1.0)
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
-            g["lr"] = base * decay
+            g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
         self.optimizer.step()
-        if self.cfg.samples_per_batch > 0:  # Instant-NGP: a fixed sample budget per step, not fixed rays
+        if (
+            self.cfg.samples_per_batch > 0
+        ):  # Instant-NGP: a fixed sample budget per step, not fixed rays
             wanted = self.cfg.samples_per_batch * n_rays / max(out["samples"], 1)
-            self.n_rays = int(min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch))
-        return {"loss": float(loss.detach()), "psnr": -10.0 * math.log10(max(float(mse.detach()), 1e-10)),
-                "samples_per_ray": out["samples"] / n_rays, "rays": n_rays, "voxels": self.grid.num_rows}
+            self.n_rays = int(
+                min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch)
+            )
+        return {
+            "loss": float(loss.detach()),
+            "psnr": training_psnr(mse.detach()),
+            "samples_per_ray": out["samples"] / n_rays,
+            "rays": n_rays,
+            "voxels": self.grid.num_rows,
+        }
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
-        o, d, z = camera_rays(camera, 0)
-        H, W = o.shape[:2]
-        outs = [self.render_rays(oc, dc, jitter=False) for oc, dc in
-                zip(o.reshape(-1, 3).split(self.cfg.chunk), d.reshape(-1, 3).split(self.cfg.chunk))]
-        rgb = torch.cat([r["rgb"] for r in outs]).view(H, W, 3)
-        acc = torch.cat([r["acc"] for r in outs]).view(H, W)
-        depth_t = torch.cat([r["depth"] for r in outs]).view(H, W)
-        depth = depth_t / acc.clamp_min(1e-6) * z
-        return {"rgb": rgb, "acc": acc, "depth": depth}
+        def rays(origins: Tensor, directions: Tensor):
+            out = self.render_rays(origins, directions, jitter=False)
+            return out["rgb"], out["depth"], out["acc"]
+
+        return render_image(rays, camera, self.cfg.chunk)
 
     # ---- state ---------------------------------------------------------------------------
     def load_state_dict(self, state: dict, strict: bool = True):
@@ -225,8 +260,11 @@ class PlenoxelModel(Model):
         return super().load_state_dict(state, strict)
 
     def training_state(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
-                "n_rays": self.n_rays}
+        return {
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "n_rays": self.n_rays,
+        }
 
     def load_training_state(self, state: dict) -> None:
         self.optimizer.load_state_dict(state["optimizer"])
@@ -234,14 +272,32 @@ class PlenoxelModel(Model):
         self.n_rays = int(state["n_rays"])
 
     def stats(self) -> dict[str, float]:
-        return {"parameters": sum(p.numel() for p in self.grid.data.values()), "voxels": self.grid.num_rows,
-                "resolution": self.res, "occupied_fraction": self.occupancy.occupancy_fraction()}
+        return {
+            "parameters": sum(p.numel() for p in self.grid.data.values()),
+            "voxels": self.grid.num_rows,
+            "resolution": self.res,
+            "occupied_fraction": self.occupancy.occupancy_fraction(),
+        }
 
 
-register(MethodSpec(
-    name="plenoxel", config_cls=PlenoxelConfig, build=PlenoxelModel,
-    presets={"fast": {}, "paper": {"resolutions": (128, 256, 512), "upsample_steps": (2000, 5000),
-                                   "rays_per_batch": 5000, "samples_per_batch": 0, "default_steps": 12800}},
-    # about 40k rays/s (adaptive batches up to 16k rays at 2.85 steps/s on lego-200, 2 threads)
-    resolution=ResolutionPolicy(pixels_per_s=40e3, pixels_per_step=12000, min_epochs=2.0, max_side=800),
-))
+register(
+    MethodSpec(
+        name="plenoxel",
+        config_cls=PlenoxelConfig,
+        build=PlenoxelModel,
+        presets={
+            "fast": {},
+            "paper": {
+                "resolutions": (128, 256, 512),
+                "upsample_steps": (2000, 5000),
+                "rays_per_batch": 5000,
+                "samples_per_batch": 0,
+                "default_steps": 12800,
+            },
+        },
+        # about 40k rays/s (adaptive batches up to 16k rays at 2.85 steps/s on lego-200, 2 threads)
+        resolution=ResolutionPolicy(
+            pixels_per_s=40e3, pixels_per_step=12000, min_epochs=2.0, max_side=800
+        ),
+    )
+)

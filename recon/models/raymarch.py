@@ -4,7 +4,6 @@ small MLPs, the truncated exponential and scene bounds. No rendering maths lives
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -12,7 +11,7 @@ from torch import Tensor, nn
 
 from recon.cameras import Cameras, camera_rays
 from recon.models.base import SceneInfo
-from recon.volrend import normalize_to_box, ray_aabb_intersect
+from recon.volrend import normalize_to_box, ray_aabb_intersect, surface_depth
 
 # render_rays(origins (R, 3), directions (R, 3)) -> (rgb (R, 3), expected t (R,), acc (R,))
 RenderRaysFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
@@ -35,10 +34,9 @@ def render_image(render_rays: RenderRaysFn, camera: Cameras, chunk: int) -> dict
     origins, directions, z_per_t = camera_rays(camera, 0)
     H, W = z_per_t.shape
     o, d = origins.reshape(-1, 3).float(), directions.reshape(-1, 3).float()
-    parts = [render_rays(o[i:i + chunk], d[i:i + chunk]) for i in range(0, o.shape[0], chunk)]
+    parts = [render_rays(o[i : i + chunk], d[i : i + chunk]) for i in range(0, o.shape[0], chunk)]
     rgb, t, acc = (torch.cat(p) for p in zip(*parts))
-    depth_t = torch.where(acc > 0, t / acc.clamp_min(1e-10), torch.zeros_like(t))
-    depth = depth_t * z_per_t.reshape(-1).to(t)
+    depth = surface_depth(t, acc) * z_per_t.reshape(-1).to(t)
     return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
 
 
@@ -92,7 +90,10 @@ def mlp_dtype(device: torch.device, precision: str) -> torch.dtype:
     if device.type == "cuda":
         native = torch.cuda.is_bf16_supported()
     else:
-        probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # private torch API: absent = no
+        probes = (
+            "_is_avx512_bf16_supported",
+            "_is_amx_tile_supported",
+        )  # private torch API: absent = no
         native = any(getattr(torch.cpu, name, lambda: False)() for name in probes)
     return torch.bfloat16 if native else torch.float32
 
@@ -126,19 +127,3 @@ class _TruncExp(torch.autograd.Function):
 def trunc_exp(x: Tensor) -> Tensor:
     """sigma = exp(x) with the gradient clamped at x = 15 (see `_TruncExp`)."""
     return _TruncExp.apply(x)
-
-
-def psnr(mse: float) -> float:
-    """-10 log10(MSE) for images in [0, 1]."""
-    return -10.0 * math.log10(max(mse, 1e-10))
-
-
-def exp_decay_lr(step: int, lr: float, lr_final: float, decay_steps: int) -> float:
-    """lr * (lr_final / lr)^(step / decay_steps), held at lr_final afterwards."""
-    frac = min(step / max(decay_steps, 1), 1.0)
-    return lr * (lr_final / lr) ** frac
-
-
-def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = lr

@@ -8,23 +8,7 @@ import torch
 from torch import Tensor
 
 from recon.cameras.cameras import invert_rigid
-
-
-def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
-    """OpenCV camera at `eye` (P, 3) looking at `target` (3,) with world `up` -> cam_from_world (P, 4, 4).
-
-    z (forward) = target - eye, x (right) = z x up, y (down) = z x x.
-    """
-    z = torch.nn.functional.normalize(target - eye, dim=-1)
-    x = torch.linalg.cross(z, up.expand_as(z), dim=-1)
-    bad = x.norm(dim=-1) < 1e-6  # looking straight along up: pick any right vector
-    x[bad] = torch.linalg.cross(z[bad], torch.tensor([1.0, 0, 0], dtype=z.dtype).expand_as(z[bad]), dim=-1)
-    x = torch.nn.functional.normalize(x, dim=-1)
-    y = torch.linalg.cross(z, x, dim=-1)
-    world_from_cam = torch.eye(4, dtype=eye.dtype).repeat(eye.shape[0], 1, 1)
-    world_from_cam[:, :3, 0], world_from_cam[:, :3, 1], world_from_cam[:, :3, 2] = x, y, z
-    world_from_cam[:, :3, 3] = eye
-    return invert_rigid(world_from_cam)
+from recon.cameras.look_at import look_at
 
 
 def orbit_path(centers: Tensor, target: Tensor, frames: int) -> Tensor:
@@ -33,8 +17,12 @@ def orbit_path(centers: Tensor, target: Tensor, frames: int) -> Tensor:
     radius = rel[:, :2].norm(dim=-1).mean()
     height = rel[:, 2].mean()
     angles = torch.linspace(0, 2 * math.pi, frames + 1, dtype=centers.dtype)[:-1]
-    eye = torch.stack([radius * torch.cos(angles), radius * torch.sin(angles),
-                       height.expand(frames)], dim=-1) + target
+    eye = (
+        torch.stack(
+            [radius * torch.cos(angles), radius * torch.sin(angles), height.expand(frames)], dim=-1
+        )
+        + target
+    )
     return look_at(eye, target, torch.tensor([0.0, 0.0, 1.0], dtype=centers.dtype))
 
 
@@ -46,8 +34,14 @@ def spiral_path(world_from_cam: Tensor, target: Tensor, frames: int, rots: float
     right, down = R[:, 0], R[:, 1]
     spread = (c - mean_c).abs().quantile(0.9, dim=0).norm().clamp_min(1e-3)
     t = torch.linspace(0, 2 * math.pi * rots, frames + 1, dtype=c.dtype)[:-1]
-    eye = mean_c + spread * (torch.cos(t)[:, None] * right + torch.sin(t)[:, None] * down) \
-        + 0.5 * spread * torch.sin(t / rots)[:, None] * torch.nn.functional.normalize(target - mean_c, dim=0)
+    eye = (
+        mean_c
+        + spread * (torch.cos(t)[:, None] * right + torch.sin(t)[:, None] * down)
+        + 0.5
+        * spread
+        * torch.sin(t / rots)[:, None]
+        * torch.nn.functional.normalize(target - mean_c, dim=0)
+    )
     return look_at(eye, target, -down)
 
 
@@ -58,9 +52,13 @@ def _slerp_rot(Ra: Tensor, Rb: Tensor, s: float) -> Tensor:
     angle = torch.arccos(cos)
     if angle < 1e-8:
         return Ra
-    axis = torch.stack([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / (2 * torch.sin(angle))
+    axis = torch.stack([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / (
+        2 * torch.sin(angle)
+    )
     a = angle * s
-    Kx = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=Ra.dtype)
+    Kx = torch.tensor(
+        [[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=Ra.dtype
+    )
     return Ra @ (torch.eye(3, dtype=Ra.dtype) + torch.sin(a) * Kx + (1 - torch.cos(a)) * Kx @ Kx)
 
 

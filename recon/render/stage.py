@@ -13,27 +13,41 @@ import torch
 from recon.cameras.cameras import Cameras
 from recon.io.exr import write_depth_exr
 from recon.io.images import to_uint8, write_png
+from recon.models.registry import pick_device
+from recon.options import opt
 from recon.render.paths import interpolate_path, orbit_path, spiral_path
 from recon.render.views import render_view
 from recon.train.resolution import output_levels
-from recon.train.stage import load_model, model_path, pick_device
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
+from recon.workspace.runs import load_run
 from recon.workspace.scene import level_size
 
 
 @dataclass(frozen=True)
 class RenderConfig:
-    split: str = "test"  # dataset split to render (when no path is given)
-    path: str = ""  # orbit | spiral | interpolate: a camera path instead of a split
-    frames: int = 60  # frames of the camera path
-    video: bool = False  # also write video.mp4
-    fps: int = 30  # video frame rate
-    max_side: int = 0  # render at the pyramid level whose longer side fits N px (0 = the run's training level)
-    downscale: int = 0  # render at the sfm images' size divided by K (0 = the run's training level)
-    device: str = "auto"  # auto | cpu | cuda
+    split: str = opt(
+        "test", "dataset views to render (ignored with --path)", choices=("test", "train", "val")
+    )
+    path: str = opt(
+        "", "a camera path instead of a split", choices=("", "orbit", "spiral", "interpolate")
+    )
+    frames: int = opt(60, "frames of the camera path")
+    video: bool = opt(False, "also write video.mp4")
+    fps: int = opt(30, "video frame rate")
+    max_side: int = opt(
+        0, "render at the pyramid level whose longer side fits N px (0 = the run's training level)"
+    )
+    downscale: int = opt(
+        0, "render at the sfm images' size divided by K (0 = the run's training level)"
+    )
+    device: str = opt(
+        "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
+    )
 
 
-def path_cameras(scene, kind: str, frames: int, device, downscale: int = 1) -> tuple[Cameras, list[str]]:
+def path_cameras(
+    scene, kind: str, frames: int, device, downscale: int = 1
+) -> tuple[Cameras, list[str]]:
     """A camera path through the training views, with the first one's intrinsics at pyramid level
     `downscale`. The paths take and give `world_from_cam` poses; cameras keep `cam_from_world`."""
     train = scene.split("train")
@@ -50,16 +64,22 @@ def path_cameras(scene, kind: str, frames: int, device, downscale: int = 1) -> t
     else:
         raise WorkspaceError(f"unknown camera path {kind!r} (orbit, spiral, interpolate)")
     K = cams.K[:1].expand(frames, 3, 3).clone()
-    out = Cameras(K, cam_from_world, cams.width[:1].expand(frames).clone(),
-                  cams.height[:1].expand(frames).clone())
+    out = Cameras(
+        K,
+        cam_from_world,
+        cams.width[:1].expand(frames).clone(),
+        cams.height[:1].expand(frames).clone(),
+    )
     return out.to(device=device, dtype=torch.float32), [f"{i:04d}" for i in range(frames)]
 
 
-def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, progress=None) -> dict:
+def render_run(
+    ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, progress=None
+) -> dict:
     key = f"train/{run}"
     ws.require_fresh(key, force)
     device = pick_device(cfg.device)
-    model, scene, run_doc = load_model(ws, run, device)
+    model, scene, run_doc = load_run(ws, run, device)
     k_out, k_render = output_levels(scene, run_doc, cfg.max_side, cfg.downscale)
     if cfg.path:
         cams, names = path_cameras(scene, cfg.path, cfg.frames, device, k_render)
@@ -72,7 +92,9 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
         cams, names = scene.cameras(idx, device, k_render), [scene.frames[i]["name"] for i in idx]
         if cfg.split == "train" and hasattr(model, "train_cameras"):
             cams = model.train_cameras(cams)  # the training poses as the model refined them
-        sizes = [level_size(scene.frames[i]["width"], scene.frames[i]["height"], k_out) for i in idx]
+        sizes = [
+            level_size(scene.frames[i]["width"], scene.frames[i]["height"], k_out) for i in idx
+        ]
         target = cfg.split
     out_dir = ws.renders_dir(run, target)
     started = time.time()
@@ -95,17 +117,30 @@ def render_run(ws: Workspace, run: str, cfg: RenderConfig, force: bool = False, 
         if progress:
             progress("render", i + 1, len(cams), ms_per_frame=round(1000 * np.mean(times), 1))
     if cfg.video:
-        write_video(out_dir / "video.mp4", frames_rgb, cfg.fps)
-    result = {"run": run, "target": target, "frames": len(cams), "out": str(out_dir),
-              "ms_per_frame": round(1000 * float(np.mean(times)), 2),
-              "ms_per_frame_median": round(1000 * float(np.median(times)), 2),
-              "resolution": list(sizes[0]), "downscale": k_out,
-              "rendered_at": {"downscale": k_render, "size": [int(cams.width[0]), int(cams.height[0])]},
-              "device": str(device)}
-    atomic_write_json(out_dir / "render.json", result)
-    ws.record_stage(f"render/{run}/{target}", config=cfg.__dict__, inputs={"model": model_path(ws, run)},
-                    outputs={"renders": out_dir}, upstream=[key], started=started, ended=time.time(),
-                    extra={"ms_per_frame": result["ms_per_frame"]})
+        write_video(ws.render_video(run, target), frames_rgb, cfg.fps)
+    result = {
+        "run": run,
+        "target": target,
+        "frames": len(cams),
+        "out": str(out_dir),
+        "ms_per_frame": round(1000 * float(np.mean(times)), 2),
+        "ms_per_frame_median": round(1000 * float(np.median(times)), 2),
+        "resolution": list(sizes[0]),
+        "downscale": k_out,
+        "rendered_at": {"downscale": k_render, "size": [int(cams.width[0]), int(cams.height[0])]},
+        "device": str(device),
+    }
+    atomic_write_json(ws.render_json(run, target), result)
+    ws.record_stage(
+        f"render/{run}/{target}",
+        config=cfg.__dict__,
+        inputs={"model": ws.model_path(run)},
+        outputs={"renders": out_dir},
+        upstream=[key],
+        started=started,
+        ended=time.time(),
+        extra={"ms_per_frame": result["ms_per_frame"]},
+    )
     return result
 
 
@@ -116,12 +151,13 @@ def write_video(path, frames: list[np.ndarray], fps: int) -> None:
         # H.264 needs even sizes; pad by one pixel row/column if necessary
         h, w = frames[0].shape[:2]
         pad = ((0, h % 2), (0, w % 2), (0, 0))
-        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", quality=8,
-                                macro_block_size=1, format="FFMPEG") as writer:
+        with imageio.get_writer(
+            str(tmp), fps=fps, codec="libx264", quality=8, macro_block_size=1, format="FFMPEG"
+        ) as writer:
             for f in frames:
                 writer.append_data(np.pad(f, pad, mode="edge"))
 
 
 def read_render_json(ws: Workspace, run: str, target: str) -> dict | None:
-    p = ws.renders_dir(run, target) / "render.json"
+    p = ws.render_json(run, target)
     return json.loads(p.read_text()) if p.exists() else None

@@ -13,7 +13,8 @@ from recon.sfm import colmap_diagnose as diagnose
 from recon.sfm.photos import PhotoSet
 
 if TYPE_CHECKING:
-    from recon.sfm.colmap_sfm import Attempt, PhaseTimer, SfmConfig
+    from recon.sfm.colmap_config import SfmConfig
+    from recon.sfm.colmap_steps import Attempt, PhaseTimer
 
 
 def determinism_note(num_threads: int) -> str:

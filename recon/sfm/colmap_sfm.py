@@ -10,11 +10,10 @@ the best attempt; the report says which images are still out and why.
 
 from __future__ import annotations
 
-import contextlib
 import shutil
 import time
 import zlib  # noqa: F401  (before pycolmap: importing pycolmap first corrupts zlib's heap)
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pycolmap
@@ -22,8 +21,9 @@ import pycolmap
 from recon.sfm import colmap_diagnose as diagnose
 from recon.sfm import colmap_retry
 from recon.sfm import colmap_steps as steps
+from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.colmap_report import build_report
-from recon.sfm.colmap_steps import AttemptOptions, Progress
+from recon.sfm.colmap_steps import Attempt, AttemptOptions, PhaseTimer, Progress
 from recon.sfm.photos import PhotoSet, prepare_photos
 
 MATCHERS = ("auto", "exhaustive", "sequential")
@@ -34,30 +34,6 @@ AUTO_EXHAUSTIVE_MAX_IMAGES = 100  # exhaustive costs N^2/2 pairs; beyond this, s
 class SfmError(RuntimeError):
     """SfM produced nothing usable; the message is one line, e.g.
     "0 of 12 images registered: not enough matches between the photos"."""
-
-
-@dataclass(frozen=True)
-class SfmConfig:
-    """Options of `run_sfm` (one CLI flag each; the comment after a field is its help).
-
-    SIFT keypoints found on the downscaled image are rescaled to full resolution. At 1600 px
-    or more SIFT skips its 2x-upsampled first octave (4x cheaper, ~3000 keypoints per phone
-    photo); on the fox capture (67 photos 1080x1920) this matched the accuracy of 1200 px with
-    upsampling (0.12 deg, 0.09 % of the camera spread) for 60 % of the CPU time. Matching
-    cost grows with `max_num_features` squared per pair and with the number of pairs.
-    """
-
-    max_image_size: int = 1600  # SIFT runs on photos downscaled to this longer side (px)
-    max_num_features: int = 4096  # SIFT keypoints kept per image
-    matcher: str = "auto"  # auto | exhaustive | sequential (auto: exhaustive up to 100 photos)
-    mapper: str = "incremental"  # incremental (COLMAP) | global (GLOMAP)
-    camera_model: str = "SIMPLE_RADIAL"  # COLMAP camera model: SIMPLE_RADIAL, OPENCV, PINHOLE...
-    single_camera: bool = True  # one camera shared by all photos of one size (one device)
-    try_harder: bool = True  # retry with more features / other matcher if photos stay out
-    min_image_side: int = 64  # photos with a shorter side below this (px) are skipped
-    seed: int = 0  # RANSAC and mapper seed (runs repeat bit for bit only with num_threads=1)
-    num_threads: int = -1  # COLMAP threads (-1: all cores)
-    verbose: bool = False  # show COLMAP's own log lines
 
 
 @dataclass
@@ -123,57 +99,6 @@ def attempt_ladder(config: SfmConfig, num_images: int) -> list[AttemptOptions]:
         second, name="guided matching, all pairs", matcher="exhaustive", guided_matching=True
     )
     return [first, second, third]
-
-
-class PhaseTimer:
-    """Wall and process-CPU seconds per phase; CPU time (all threads) stays meaningful when
-    other jobs share the cores and stretch wall time."""
-
-    def __init__(self) -> None:
-        self.wall: dict[str, float] = {}
-        self.cpu: dict[str, float] = {}
-
-    @contextlib.contextmanager
-    def __call__(self, phase: str):
-        wall, cpu = time.perf_counter(), time.process_time()
-        try:
-            yield
-        finally:
-            self.wall[phase] = self.wall.get(phase, 0.0) + time.perf_counter() - wall
-            self.cpu[phase] = self.cpu.get(phase, 0.0) + time.process_time() - cpu
-
-    def as_dict(self) -> dict:
-        return {
-            "wall_s": {k: round(v, 2) for k, v in self.wall.items()},
-            "cpu_s": {k: round(v, 2) for k, v in self.cpu.items()},
-        }
-
-
-@dataclass
-class Attempt:
-    """One attempt's outcome."""
-
-    options: AttemptOptions
-    directory: Path
-    models: dict[int, pycolmap.Reconstruction]
-    timer: PhaseTimer
-    retried: list[str] = field(default_factory=list)  # photos a retry re-extracted / re-matched
-    pairs_matched: int = 0  # image pairs sent to the matcher (already matched pairs are skipped)
-
-    @property
-    def best(self) -> pycolmap.Reconstruction | None:
-        """The largest model (most registered images, then most points)."""
-        if not self.models:
-            return None
-        return max(self.models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
-
-    @property
-    def registered(self) -> int:
-        return self.best.num_reg_images() if self.models else 0
-
-    @property
-    def database(self) -> Path:
-        return self.directory / "database.db"
 
 
 def camera_groups(photos: PhotoSet, single_camera: bool) -> list[tuple[list[str], int]]:
@@ -294,7 +219,7 @@ def run_ladder(
 def run_sfm(
     image_dir: Path,
     work_dir: Path,
-    config: SfmConfig = SfmConfig(),
+    config: SfmConfig = SfmConfig(),  # noqa: B008 (frozen: one shared default is safe)
     progress: Progress | None = None,
 ) -> SfmResult:
     """Photos in `image_dir` -> undistorted PINHOLE reconstruction, images and report.

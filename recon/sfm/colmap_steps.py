@@ -9,9 +9,10 @@ from __future__ import annotations
 import contextlib
 import re
 import shutil
+import time
 import zlib  # noqa: F401  (before pycolmap: importing pycolmap first corrupts zlib's heap)
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pycolmap
@@ -260,3 +261,54 @@ def undistort(
         output, model_dir, image_dir, output_type="COLMAP", num_threads=num_threads
     )
     return output
+
+
+class PhaseTimer:
+    """Wall and process-CPU seconds per phase; CPU time (all threads) stays meaningful when
+    other jobs share the cores and stretch wall time."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, phase: str):
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[phase] = self.wall.get(phase, 0.0) + time.perf_counter() - wall
+            self.cpu[phase] = self.cpu.get(phase, 0.0) + time.process_time() - cpu
+
+    def as_dict(self) -> dict:
+        return {
+            "wall_s": {k: round(v, 2) for k, v in self.wall.items()},
+            "cpu_s": {k: round(v, 2) for k, v in self.cpu.items()},
+        }
+
+
+@dataclass
+class Attempt:
+    """One attempt's outcome."""
+
+    options: AttemptOptions
+    directory: Path
+    models: dict[int, pycolmap.Reconstruction]
+    timer: PhaseTimer
+    retried: list[str] = field(default_factory=list)  # photos a retry re-extracted / re-matched
+    pairs_matched: int = 0  # image pairs sent to the matcher (already matched pairs are skipped)
+
+    @property
+    def best(self) -> pycolmap.Reconstruction | None:
+        """The largest model (most registered images, then most points)."""
+        if not self.models:
+            return None
+        return max(self.models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+
+    @property
+    def registered(self) -> int:
+        return self.best.num_reg_images() if self.models else 0
+
+    @property
+    def database(self) -> Path:
+        return self.directory / "database.db"

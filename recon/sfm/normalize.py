@@ -1,41 +1,11 @@
-"""Scene normalization (SPEC §3): a similarity `scene_from_world` that puts the cameras and
+"""Scene normalization: a similarity `scene_from_world` that puts the cameras and
 the robust bulk of the sparse points inside [-1, 1]^3, +z up, and the box of interest."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-
-@dataclass(frozen=True)
-class Similarity:
-    """x_scene = scale * R @ x_world + t."""
-
-    scale: float
-    R: np.ndarray  # (3, 3)
-    t: np.ndarray  # (3,)
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        return self.scale * points @ self.R.T + self.t
-
-    def invert_points(self, points_scene: np.ndarray) -> np.ndarray:
-        """x_world = R^T (x_scene - t) / scale."""
-        return ((points_scene - self.t) / self.scale) @ self.R
-
-    def world_from_cam_to_scene(self, world_from_cam: np.ndarray) -> np.ndarray:
-        """(C, 4, 4) world_from_cam -> scene_from_cam (rigid: the scale moves the centre only)."""
-        out = world_from_cam.copy()
-        out[:, :3, :3] = self.R @ world_from_cam[:, :3, :3]
-        out[:, :3, 3] = self.apply(world_from_cam[:, :3, 3])
-        return out
-
-    def to_json(self) -> dict:
-        return {"scale": float(self.scale), "R": self.R.tolist(), "t": self.t.tolist()}
-
-    @staticmethod
-    def from_json(d: dict) -> Similarity:
-        return Similarity(float(d["scale"]), np.asarray(d["R"], float), np.asarray(d["t"], float))
+from recon.cameras.similarity import Similarity
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -69,14 +39,15 @@ def robust_box(points: np.ndarray, lo: float = 2.0, hi: float = 98.0) -> np.ndar
     return np.stack([np.percentile(points, lo, axis=0), np.percentile(points, hi, axis=0)])
 
 
-def depth_points(world_from_cam: np.ndarray, K: np.ndarray, depths: list[np.ndarray],
-                 stride: int = 4) -> np.ndarray:
+def depth_points(
+    world_from_cam: np.ndarray, K: np.ndarray, depths: list[np.ndarray], stride: int = 4
+) -> np.ndarray:
     """World points (N, 3) of z-depth maps: x_world = world_from_cam [z K^-1 (u, v, 1)], at every
     stride-th pixel centre (u, v) = (i + 0.5, j + 0.5); depth <= 0 or non-finite = no surface.
     world_from_cam (C, 4, 4), K (C, 3, 3), depths C maps (H_c, W_c) in the pose units."""
     out = []
     for w_from_c, k, depth in zip(world_from_cam, K, depths):
-        v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
+        v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
         z = depth[v, u].astype(np.float64)
         ok = np.isfinite(z) & (z > 0)
         pix = np.stack([u[ok] + 0.5, v[ok] + 0.5, np.ones(ok.sum())], -1)
@@ -85,8 +56,13 @@ def depth_points(world_from_cam: np.ndarray, K: np.ndarray, depths: list[np.ndar
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
-def carve(points: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
-          min_views: int) -> np.ndarray:
+def carve(
+    points: np.ndarray,
+    world_from_cam: np.ndarray,
+    K: np.ndarray,
+    masks: list[np.ndarray],
+    min_views: int,
+) -> np.ndarray:
     """(N,) bool: the visual hull test (Laurentini 1994) for points (N, 3) world. A point is kept
     when it projects inside the image in >= min_views views and onto the mask (H_c, W_c) bool in
     every one of them; views it falls outside of (or behind) say nothing about it."""
@@ -114,8 +90,14 @@ def grid_points(box: np.ndarray, n: int) -> tuple[np.ndarray, float]:
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), h
 
 
-def hull_box(world_from_cam: np.ndarray, K: np.ndarray, masks: list[np.ndarray], region: np.ndarray,
-             resolution: int = 48, max_views: int = 40) -> np.ndarray | None:
+def hull_box(
+    world_from_cam: np.ndarray,
+    K: np.ndarray,
+    masks: list[np.ndarray],
+    region: np.ndarray,
+    resolution: int = 48,
+    max_views: int = 40,
+) -> np.ndarray | None:
     """(2, 3) world box of the visual hull of the masks inside region (2, 3), or None when nothing
     survives. Two passes (the region, then the first box grown by two cells) of resolution^3
     cell centres; the box is padded by 1.5 cells so cells straddling a silhouette are inside it.
@@ -133,15 +115,21 @@ def hull_box(world_from_cam: np.ndarray, K: np.ndarray, masks: list[np.ndarray],
     return box
 
 
-def object_box(world_from_cam: np.ndarray, K: np.ndarray, sizes: np.ndarray, points: np.ndarray | None,
-               depths: list[np.ndarray] | None = None, masks: list[np.ndarray] | None = None,
-               ) -> tuple[np.ndarray, str]:
+def object_box(
+    world_from_cam: np.ndarray,
+    K: np.ndarray,
+    sizes: np.ndarray,
+    points: np.ndarray | None,
+    depths: list[np.ndarray] | None = None,
+    masks: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, str]:
     """(2, 3) world box of the scene content and where it came from, from the best evidence:
     sparse points (robust 2-98 % box), else ground-truth depth maps (0.5-99.5 %), each padded by
     10 % of the longest side; else the visual hull of the alpha masks (when they blank >= 5 % of
     the median view), padded by 5 %; else the cube that the
     median camera sees around the optical axes' meeting point (half-size = distance * tan(half
     fov)), which is too small when the content fills the frames (a plate running off them)."""
+
     def padded(box, fraction=0.1):
         pad = fraction * (box[1] - box[0]).max()
         return np.stack([box[0] - pad, box[1] + pad])
@@ -160,15 +148,22 @@ def object_box(world_from_cam: np.ndarray, K: np.ndarray, sizes: np.ndarray, poi
         if box is not None:
             return padded(box, 0.05), "masks"
     dist = np.median(np.linalg.norm(world_from_cam[:, :3, 3] - center, axis=1))
-    half_fov = np.arctan(0.5 * np.median(np.minimum(sizes[:, 0] / K[:, 0, 0], sizes[:, 1] / K[:, 1, 1])))
+    half_fov = np.arctan(
+        0.5 * np.median(np.minimum(sizes[:, 0] / K[:, 0, 0], sizes[:, 1] / K[:, 1, 1]))
+    )
     half = dist * np.tan(half_fov)
     return np.stack([center - half, center + half]), "cameras"
 
 
-def normalize_scene(world_from_cam: np.ndarray, K: np.ndarray, sizes: np.ndarray,
-                    points: np.ndarray | None, margin: float = 0.9,
-                    depths: list[np.ndarray] | None = None, masks: list[np.ndarray] | None = None,
-                    ) -> tuple[Similarity, np.ndarray]:
+def normalize_scene(
+    world_from_cam: np.ndarray,
+    K: np.ndarray,
+    sizes: np.ndarray,
+    points: np.ndarray | None,
+    margin: float = 0.9,
+    depths: list[np.ndarray] | None = None,
+    masks: list[np.ndarray] | None = None,
+) -> tuple[Similarity, np.ndarray]:
     """Choose `scene_from_world` and the box of interest (aabb, scene frame).
 
     Up: the mean camera up vector (-y in OpenCV) becomes +z. The box: `object_box` (points, else

@@ -32,7 +32,9 @@ def video_files(source: Path) -> list[Path]:
     source = Path(source)
     if source.is_file():
         if not is_video(source.name):
-            raise PhotoError(f"{source} is neither a folder nor a video ({', '.join(VIDEO_SUFFIXES)})")
+            raise PhotoError(
+                f"{source} is neither a folder nor a video ({', '.join(VIDEO_SUFFIXES)})"
+            )
         return [source]
     return [f for f in list_photo_files(source) if is_video(f.name)]
 
@@ -63,14 +65,26 @@ def videos_summary(videos: list[VideoFrames], config: VideoConfig, wall_s: float
     decoded = sum(r["frames_decoded"] for r in reports)
     chosen = sum(r["windows"] for r in reports)
     kept = sum(r["frames_kept"] for r in reports)
-    return {"config": dataclasses.asdict(config), "videos_given": len(videos),
-            "frames_decoded": decoded, "frames_chosen": chosen, "frames_kept": kept,
-            "frames_blurred": chosen - kept, "extraction_wall_s": round(wall_s, 2),
-            "videos": reports}
+    return {
+        "config": dataclasses.asdict(config),
+        "videos_given": len(videos),
+        "frames_decoded": decoded,
+        "frames_chosen": chosen,
+        "frames_kept": kept,
+        "frames_blurred": chosen - kept,
+        "extraction_wall_s": round(wall_s, 2),
+        "videos": reports,
+    }
 
 
-def photos_to_workspace(images: Path, ws: Workspace, cfg: SceneConfig, options: dict, progress,
-                        video_config: VideoConfig | None = None) -> dict:
+def photos_to_workspace(
+    images: Path,
+    ws: Workspace,
+    cfg: SceneConfig,
+    options: dict,
+    progress,
+    video_config: VideoConfig | None = None,
+) -> dict:
     """SfM on a photo folder, a video, or a folder of both -> the workspace's sfm stage."""
     videos = video_files(images)
     config = sfm_config(options, videos)
@@ -78,37 +92,73 @@ def photos_to_workspace(images: Path, ws: Workspace, cfg: SceneConfig, options: 
     try:
         with ws.writer_lock("sfm-engine"):
             if not videos:
-                return engine_to_workspace(Path(images), images, ws, cfg, config, work, progress,
-                                           {"source": "photos"}, {})
+                return engine_to_workspace(
+                    Path(images), images, ws, cfg, config, work, progress, {"source": "photos"}, {}
+                )
             video = video_config or VideoConfig()
             validate_video_config(video)
             frames_dir, started = work / "frames", time.perf_counter()
             extracted = extract_videos(videos, frames_dir, video, progress, config.verbose)
             extract_s = time.perf_counter() - started
-            others = [] if Path(images).is_file() else [
-                f for f in list_photo_files(images) if not is_video(f.name)]
-            link_inputs(others, [frames_dir / n for v in extracted for n in v.names], work / "input")
-            record = {"source": "video" if not others else "photos+video", **dataclasses.asdict(video)}
-            return engine_to_workspace(work / "input", images, ws, cfg, config, work, progress, record,
-                                       {"video": videos_summary(extracted, video, extract_s)},
-                                       {str(ws.frames_dir.relative_to(ws.sfm_dir)): frames_dir})
+            others = (
+                []
+                if Path(images).is_file()
+                else [f for f in list_photo_files(images) if not is_video(f.name)]
+            )
+            link_inputs(
+                others, [frames_dir / n for v in extracted for n in v.names], work / "input"
+            )
+            record = {
+                "source": "video" if not others else "photos+video",
+                **dataclasses.asdict(video),
+            }
+            return engine_to_workspace(
+                work / "input",
+                images,
+                ws,
+                cfg,
+                config,
+                work,
+                progress,
+                record,
+                {"video": videos_summary(extracted, video, extract_s)},
+                {str(ws.frames_dir.relative_to(ws.sfm_dir)): frames_dir},
+            )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def engine_to_workspace(image_dir: Path, source: Path, ws: Workspace, cfg: SceneConfig,
-                        config: SfmConfig, work: Path, progress, record: dict, extra_report: dict,
-                        extra_copies: dict[str, Path] | None = None) -> dict:
+def engine_to_workspace(
+    image_dir: Path,
+    source: Path,
+    ws: Workspace,
+    cfg: SceneConfig,
+    config: SfmConfig,
+    work: Path,
+    progress,
+    record: dict,
+    extra_report: dict,
+    extra_copies: dict[str, Path] | None = None,
+) -> dict:
     """Run the engine on `image_dir` in `work/colmap`, then write and record the sfm stage with
     `source` (the user's photo folder or video) as its input."""
     result = run_sfm(image_dir, work / "colmap", config, progress)
     posed = read_colmap(result.images_dir.parent / "sparse", result.images_dir, cfg.holdout_every)
     posed.source = str(source)
-    keep = {"colmap/database.db": Path(result.report["paths"]["database"]),
-            "colmap/sparse": Path(result.report["paths"]["sparse_distorted"])}
+    keep = {
+        "colmap/database.db": Path(result.report["paths"]["database"]),
+        "colmap/sparse": Path(result.report["paths"]["sparse_distorted"]),
+    }
     keep = {k: v for k, v in keep.items() if v.exists()} | (extra_copies or {})
     report = {k: v for k, v in result.report.items() if k != "paths"} | extra_report
     label = "video" if Path(source).is_file() else "photos"
-    return write_sfm_stage(ws, posed, cfg, {label: Path(source)},
-                           {**record, **dataclasses.asdict(config)}, report, progress,
-                           copy_into_sfm=keep)
+    return write_sfm_stage(
+        ws,
+        posed,
+        cfg,
+        {label: Path(source)},
+        {**record, **dataclasses.asdict(config)},
+        report,
+        progress,
+        copy_into_sfm=keep,
+    )

@@ -16,18 +16,33 @@ import numpy as np
 
 from recon.io.images import composite, read_image, resize_area, write_png
 from recon.io.ply import write_points_ply
+from recon.options import opt
 from recon.sfm.normalize import normalize_scene
 from recon.sfm.sources import PosedImages, SourceError
+from recon.workspace import Workspace
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 @dataclass(frozen=True)
 class SceneConfig:
-    downscale: int = 1  # integer factor; images are area-resampled and intrinsics scaled exactly
-    background: str = "auto"  # white | black | auto (white when the input has alpha, else unused)
-    scene: str = "auto"  # bounded | unbounded | auto (bounded when the input has alpha)
-    holdout_every: int = 8  # every N-th image is a test view unless the dataset defines a split
+    downscale: int = opt(
+        1, "integer factor; images are area-resampled and intrinsics scaled exactly"
+    )
+    background: str = opt(
+        "auto",
+        "colour that transparent pixels are composited on (auto: white)",
+        choices=("auto", "white", "black"),
+    )
+    scene: str = opt(
+        "auto",
+        "bounded object (box) or unbounded capture (contraction); auto: bounded "
+        "when the images have alpha",
+        choices=("auto", "bounded", "unbounded"),
+    )
+    holdout_every: int = opt(
+        8, "every N-th image is a test view unless the dataset defines a split"
+    )
 
 
 def undistort(img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -42,7 +57,9 @@ def undistort(img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndar
     return out, np.linalg.inv(shift) @ newK_cv
 
 
-def prepare_image(frame, cfg: SceneConfig, background) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def prepare_image(
+    frame, cfg: SceneConfig, background
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Load, composite, undistort and downscale one image -> (rgb, K, mask of alpha > 0 at the
     output size, or None without alpha; the mask is not undistorted: it only bounds the box)."""
     try:
@@ -74,8 +91,14 @@ def prepare_depth(frame, width: int, height: int) -> np.ndarray | None:
     return cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
 
 
-def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out: Path,
-                images_rel: str, progress=None) -> dict:
+def write_scene(
+    posed: PosedImages,
+    cfg: SceneConfig,
+    images_out: Path,
+    sfm_out: Path,
+    images_rel: str,
+    progress=None,
+) -> dict:
     """Write images into `images_out` and the sfm files into `sfm_out` (both fresh folders).
     `images_rel` is how cameras.json names the final images folder. Returns a summary."""
     first = read_image(posed.frames[0].path)
@@ -98,19 +121,33 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
             progress("images", i + 1, len(posed.frames))
     Ks, sizes = np.stack(Ks), np.array(sizes, dtype=np.float64)
     world_from_cam = np.stack([f.world_from_cam for f in posed.frames])
-    sim, aabb = normalize_scene(world_from_cam, Ks, sizes, posed.points, depths=depths,
-                                masks=masks if all(m is not None for m in masks) else None)
+    sim, aabb = normalize_scene(
+        world_from_cam,
+        Ks,
+        sizes,
+        posed.points,
+        depths=depths,
+        masks=masks if all(m is not None for m in masks) else None,
+    )
     scene_from_cam = sim.world_from_cam_to_scene(world_from_cam)
     bounded = has_alpha if cfg.scene == "auto" else cfg.scene == "bounded"
     frames_json = []
     for (frame, rel, w, h), K, s_from_c in zip(records, Ks, scene_from_cam):
-        frames_json.append({
-            "name": frame.name, "split": frame.split, "image": f"{images_rel}/{rel}",
-            "width": int(w), "height": int(h),
-            "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
-            "cam_from_world": np.linalg.inv(s_from_c).tolist(),
-            **({"depth_gt": str(frame.depth_path)} if frame.depth_path else {}),
-        })
+        frames_json.append(
+            {
+                "name": frame.name,
+                "split": frame.split,
+                "image": f"{images_rel}/{rel}",
+                "width": int(w),
+                "height": int(h),
+                "fx": float(K[0, 0]),
+                "fy": float(K[1, 1]),
+                "cx": float(K[0, 2]),
+                "cy": float(K[1, 2]),
+                "cam_from_world": np.linalg.inv(s_from_c).tolist(),
+                **({"depth_gt": str(frame.depth_path)} if frame.depth_path else {}),
+            }
+        )
     cameras = {
         "convention": "OpenCV camera frame; cam_from_world maps the normalized scene frame to the camera",
         "scene_from_world": sim.to_json(),
@@ -125,15 +162,20 @@ def write_scene(posed: PosedImages, cfg: SceneConfig, images_out: Path, sfm_out:
         "frames": frames_json,
     }
     sfm_out.mkdir(parents=True, exist_ok=True)
-    (sfm_out / "cameras.json").write_text(json.dumps(cameras, indent=1) + "\n")
-    write_colmap_model(sfm_out / "sparse", records, Ks, world_from_cam, posed)
+    (sfm_out / Workspace.SFM_CAMERAS).write_text(json.dumps(cameras, indent=1) + "\n")
+    write_colmap_model(sfm_out / Workspace.SFM_SPARSE, records, Ks, world_from_cam, posed)
     if posed.points is not None and len(posed.points):
-        write_points_ply(sfm_out / "points.ply", posed.points, posed.point_colors)
+        write_points_ply(sfm_out / Workspace.SFM_POINTS, posed.points, posed.point_colors)
     splits = {}
     for f in posed.frames:
         splits[f.split] = splits.get(f.split, 0) + 1
-    return {"images": len(posed.frames), "splits": splits, "bounded": bounded,
-            "scale": sim.scale, "points": 0 if posed.points is None else len(posed.points)}
+    return {
+        "images": len(posed.frames),
+        "splits": splits,
+        "bounded": bounded,
+        "scale": sim.scale,
+        "points": 0 if posed.points is None else len(posed.points),
+    }
 
 
 def write_colmap_model(out: Path, records, Ks, world_from_cam, posed: PosedImages) -> None:
@@ -146,7 +188,9 @@ def write_colmap_model(out: Path, records, Ks, world_from_cam, posed: PosedImage
         key = (w, h) + tuple(np.round(K[[0, 1, 0, 1], [0, 1, 2, 2]], 6))
         if key not in cam_ids:
             cam_ids[key] = len(cam_ids) + 1
-            cam = pycolmap.Camera.create_from_model_name(cam_ids[key], "PINHOLE", 1.0, int(w), int(h))
+            cam = pycolmap.Camera.create_from_model_name(
+                cam_ids[key], "PINHOLE", 1.0, int(w), int(h)
+            )
             cam.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
             rec.add_camera_with_trivial_rig(cam)
         cam_from_world = np.linalg.inv(world_from_cam[i])
@@ -154,7 +198,11 @@ def write_colmap_model(out: Path, records, Ks, world_from_cam, posed: PosedImage
         image = pycolmap.Image(name=rel, camera_id=cam_ids[key], image_id=i + 1)
         rec.add_image_with_trivial_frame(image, pose)
     if posed.points is not None:
-        colors = posed.point_colors if posed.point_colors is not None else np.full((len(posed.points), 3), 128)
+        colors = (
+            posed.point_colors
+            if posed.point_colors is not None
+            else np.full((len(posed.points), 3), 128)
+        )
         for p, c in zip(posed.points, colors):
             rec.add_point3D(np.asarray(p, float), pycolmap.Track(), np.asarray(c, np.uint8))
     out.mkdir(parents=True, exist_ok=True)

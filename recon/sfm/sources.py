@@ -29,7 +29,9 @@ class PosedImage:
     dist: np.ndarray | None  # OpenCV (k1, k2, p1, p2) or None for a pinhole
     world_from_cam: np.ndarray  # (4, 4) OpenCV convention
     split: str  # train | val | test
-    depth_path: Path | None = None  # ground-truth z-depth map (EXR, original units), if the dataset has one
+    depth_path: Path | None = (
+        None  # ground-truth z-depth map (EXR, original units), if the dataset has one
+    )
 
 
 @dataclass
@@ -108,8 +110,17 @@ def _read_transforms_file(path: Path, split: str | None) -> list[PosedImage]:
         name = img_path.stem
         depth = fr.get("depth_file_path")
         depth = (path.parent / depth).resolve() if depth else None
-        out.append(PosedImage(name, img_path, K, dist, opencv_c2w_from_opengl_c2w(c2w_gl), split or "",
-                              depth if depth is not None and depth.exists() else None))
+        out.append(
+            PosedImage(
+                name,
+                img_path,
+                K,
+                dist,
+                opencv_c2w_from_opengl_c2w(c2w_gl),
+                split or "",
+                depth if depth is not None and depth.exists() else None,
+            )
+        )
     return out
 
 
@@ -166,7 +177,9 @@ def read_transforms(path: Path, holdout_every: int = 8) -> PosedImages:
     return PosedImages(frames, source=str(path), gt_mesh=gt_mesh)
 
 
-def read_colmap(model_dir: Path, images_dir: Path | None = None, holdout_every: int = 8) -> PosedImages:
+def read_colmap(
+    model_dir: Path, images_dir: Path | None = None, holdout_every: int = 8
+) -> PosedImages:
     """A COLMAP sparse model (text or binary). Images are looked up in `images_dir`, else in
     `model_dir/../images` or `model_dir/../../images` (COLMAP's usual layouts)."""
     import pycolmap
@@ -175,8 +188,11 @@ def read_colmap(model_dir: Path, images_dir: Path | None = None, holdout_every: 
     if not model_dir.exists():
         raise SourceError(f"{model_dir} does not exist")
     if not any((model_dir / f"cameras.{e}").exists() for e in ("bin", "txt")):
-        cand = [p for p in (model_dir / "sparse", model_dir / "sparse" / "0", model_dir / "0")
-                if any((p / f"cameras.{e}").exists() for e in ("bin", "txt"))]
+        cand = [
+            p
+            for p in (model_dir / "sparse", model_dir / "sparse" / "0", model_dir / "0")
+            if any((p / f"cameras.{e}").exists() for e in ("bin", "txt"))
+        ]
         if not cand:
             raise SourceError(f"{model_dir} holds no COLMAP model (cameras.bin/.txt)")
         model_dir = cand[0]
@@ -184,8 +200,15 @@ def read_colmap(model_dir: Path, images_dir: Path | None = None, holdout_every: 
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises bare RuntimeErrors
         raise SourceError(f"cannot read COLMAP model {model_dir}: {e}") from e
-    roots = [images_dir] if images_dir else [model_dir.parent / "images", model_dir.parent.parent / "images",
-                                            model_dir.parent.parent.parent / "images"]
+    roots = (
+        [images_dir]
+        if images_dir
+        else [
+            model_dir.parent / "images",
+            model_dir.parent.parent / "images",
+            model_dir.parent.parent.parent / "images",
+        ]
+    )
     root = next((r for r in roots if r and r.exists()), None)
     if root is None:
         raise SourceError(f"no images folder found for {model_dir}; pass --images")
@@ -196,8 +219,11 @@ def read_colmap(model_dir: Path, images_dir: Path | None = None, holdout_every: 
         K, dist = colmap_camera_to_opencv(cam)
         cam_from_world = np.eye(4)
         cam_from_world[:3, :] = im.cam_from_world().matrix()
-        frames.append(PosedImage(Path(im.name).stem, root / im.name, K, dist,
-                                 np.linalg.inv(cam_from_world), ""))
+        frames.append(
+            PosedImage(
+                Path(im.name).stem, root / im.name, K, dist, np.linalg.inv(cam_from_world), ""
+            )
+        )
     if not frames:
         raise SourceError(f"COLMAP model {model_dir} has no registered images")
     for f, s in zip(frames, holdout_split([f.name for f in frames], holdout_every)):

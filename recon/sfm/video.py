@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from recon.options import opt
+
 # Containers whose usual codecs (H.264, HEVC, VP8/9, AV1, MPEG-4, MJPEG, ProRes) the FFmpeg
 # bundled with opencv-python 4.14 decodes (each checked by decoding a file ffmpeg wrote).
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
@@ -46,15 +48,19 @@ class VideoConfig:
     with ~2 px of blur or more does (sigma = 1 px: 13 % of the photos would be dropped).
     """
 
-    frames: int = 100  # about this many frames in all, evenly over the video(s) (0 with --fps)
-    fps: float = 0.0  # instead of --frames: this many frames per second of video (0: unused)
-    blur_ratio: float = 0.35  # drop a chosen frame whose sharpness is under this x the chosen frames' median
+    frames: int = opt(100, "about this many frames in all, evenly over the video(s) (0 with --fps)")
+    fps: float = opt(0.0, "instead of --frames: this many frames per second of video (0: unused)")
+    blur_ratio: float = opt(
+        0.35, "drop a chosen frame whose sharpness is under this x the chosen frames' median"
+    )
 
 
 def validate_video_config(config: VideoConfig) -> None:
     """One-line ValueError for a config that cannot choose frames."""
     if config.frames < 0 or config.fps < 0:
-        raise ValueError(f"--frames and --fps must be positive, got {config.frames} and {config.fps:g}")
+        raise ValueError(
+            f"--frames and --fps must be positive, got {config.frames} and {config.fps:g}"
+        )
     if (config.frames > 0) == (config.fps > 0):
         raise ValueError("give exactly one of --frames N (N > 0) or --fps F (F > 0)")
     if not 0.0 <= config.blur_ratio < 1.0:
@@ -136,7 +142,9 @@ def windows_for(num_frames: int, video_fps: float, frames: int, fps: float) -> i
     per 1/fps seconds of video, round(N fps / video_fps); always within [1, N]."""
     if fps > 0:
         if video_fps <= 0:
-            raise ValueError("the video does not state its frame rate: use --frames instead of --fps")
+            raise ValueError(
+                "the video does not state its frame rate: use --frames instead of --fps"
+            )
         wanted = round(num_frames * fps / video_fps)
     else:
         wanted = frames

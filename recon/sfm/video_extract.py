@@ -116,8 +116,15 @@ def probe(cap: cv2.VideoCapture, path: Path) -> VideoInfo:
     rotation = round(cap.get(cv2.CAP_PROP_ORIENTATION_META)) % 360
     # with CAP_PROP_ORIENTATION_AUTO, OpenCV already reports the rotated (upright) size
     w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-    return VideoInfo(Path(path), max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT))),
-                     max(0.0, float(cap.get(cv2.CAP_PROP_FPS))), w, h, rotation, codec)
+    return VideoInfo(
+        Path(path),
+        max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT))),
+        max(0.0, float(cap.get(cv2.CAP_PROP_FPS))),
+        w,
+        h,
+        rotation,
+        codec,
+    )
 
 
 def decoded(cap: cv2.VideoCapture) -> Iterator[np.ndarray]:
@@ -136,8 +143,9 @@ def write_png(path: Path, bgr: np.ndarray) -> None:
     path.write_bytes(buf.tobytes())
 
 
-def scan_video(path: Path, bounds: np.ndarray | None, out_dir: Path, stem: str,
-               progress: Progress) -> tuple[np.ndarray, list[int]]:
+def scan_video(
+    path: Path, bounds: np.ndarray | None, out_dir: Path, stem: str, progress: Progress
+) -> tuple[np.ndarray, list[int]]:
     """Decode every frame once -> ((N,) sharpness, frames written). With `bounds`, the
     sharpest frame of each window is written to `out_dir` when its window ends."""
     scores: list[float] = []
@@ -159,8 +167,9 @@ def scan_video(path: Path, bounds: np.ndarray | None, out_dir: Path, stem: str,
     return np.array(scores, dtype=np.float64), written
 
 
-def write_frames(path: Path, indices: np.ndarray, out_dir: Path, stem: str,
-                 progress: Progress) -> None:
+def write_frames(
+    path: Path, indices: np.ndarray, out_dir: Path, stem: str, progress: Progress
+) -> None:
     """Decode `path` again and write the frames at `indices` as `<stem>_<index>.png`."""
     wanted = {int(i) for i in indices}
     last = max(wanted, default=-1)
@@ -173,12 +182,15 @@ def write_frames(path: Path, indices: np.ndarray, out_dir: Path, stem: str,
             if i >= last:
                 break
     if wanted:
-        raise VideoError(f"video {path} decoded differently the second time (frame {min(wanted)} "
-                         "is missing): is it still being written?")
+        raise VideoError(
+            f"video {path} decoded differently the second time (frame {min(wanted)} "
+            "is missing): is it still being written?"
+        )
 
 
-def extract_video(path: Path, out_dir: Path, stem: str, budget: int, config: VideoConfig,
-                  progress: Progress) -> VideoFrames:
+def extract_video(
+    path: Path, out_dir: Path, stem: str, budget: int, config: VideoConfig, progress: Progress
+) -> VideoFrames:
     """Choose and write the frames of one video (`budget` windows, or per --fps)."""
     with open_video(path) as cap:
         info = probe(cap, path)
@@ -208,12 +220,15 @@ def extract_video(path: Path, out_dir: Path, stem: str, budget: int, config: Vid
 def unique_stems(paths: list[Path]) -> list[str]:
     """Frame prefixes of the videos: the stem, or stem_suffix when two videos share a stem."""
     stems = [frame_stem(p.name) for p in paths]
-    return [frame_stem(p.name.replace(".", "_")) if stems.count(s) > 1 else s
-            for p, s in zip(paths, stems)]
+    return [
+        frame_stem(p.name.replace(".", "_")) if stems.count(s) > 1 else s
+        for p, s in zip(paths, stems)
+    ]
 
 
-def extract_videos(paths: list[Path], out_dir: Path, config: VideoConfig, progress: Progress,
-                   verbose: bool = False) -> list[VideoFrames]:
+def extract_videos(
+    paths: list[Path], out_dir: Path, config: VideoConfig, progress: Progress, verbose: bool = False
+) -> list[VideoFrames]:
     """Frames of every video into `out_dir`; --frames is shared by duration (`frame_budgets`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with quiet_decoder(verbose):
@@ -223,8 +238,10 @@ def extract_videos(paths: list[Path], out_dir: Path, config: VideoConfig, progre
                 infos.append(probe(cap, p))
         durations = [i.frames_announced / i.fps if i.fps > 0 else i.frames_announced for i in infos]
         budgets = frame_budgets(np.array(durations), config.frames)
-        return [extract_video(p, out_dir, stem, int(b), config, progress)
-                for p, stem, b in zip(paths, unique_stems(paths), budgets)]
+        return [
+            extract_video(p, out_dir, stem, int(b), config, progress)
+            for p, stem, b in zip(paths, unique_stems(paths), budgets)
+        ]
 
 
 def video_report(video: VideoFrames) -> dict:
@@ -234,34 +251,61 @@ def video_report(video: VideoFrames) -> dict:
     fps = info.fps
 
     def frame(i: int) -> dict:
-        out = {"frame": i, "name": frame_name(video.stem, i), "sharpness": round(float(scores[i]), 2)}
+        out = {
+            "frame": i,
+            "name": frame_name(video.stem, i),
+            "sharpness": round(float(scores[i]), 2),
+        }
         return {**out, "time_s": round(i / fps, 3)} if fps > 0 else out
 
     median = float(np.median(scores[chosen]))
     dropped = []
     for (start, end), c in zip(zip(video.bounds[:-1], video.bounds[1:]), chosen.tolist()):
         if scores[c] < video.threshold:
-            dropped.append({**frame(c), "reason": (
-                f"blurred: Laplacian variance {scores[c]:.1f} < {video.blur_ratio:g} x median "
-                f"{median:.1f}")})
+            dropped.append(
+                {
+                    **frame(c),
+                    "reason": (
+                        f"blurred: Laplacian variance {scores[c]:.1f} < {video.blur_ratio:g} x median "
+                        f"{median:.1f}"
+                    ),
+                }
+            )
         if end - start > 1:
-            dropped.append({"frames": [int(start), int(end) - 1], "count": int(end - start - 1),
-                            "reason": f"not the sharpest of its window (frame {c} is)"})
+            dropped.append(
+                {
+                    "frames": [int(start), int(end) - 1],
+                    "count": int(end - start - 1),
+                    "reason": f"not the sharpest of its window (frame {c} is)",
+                }
+            )
     notes = []
     if info.frames_announced != len(scores):
-        notes.append(f"decoded {len(scores)} frames, the container announces "
-                     f"{info.frames_announced} (truncated file or estimated count)")
+        notes.append(
+            f"decoded {len(scores)} frames, the container announces "
+            f"{info.frames_announced} (truncated file or estimated count)"
+        )
     return {
-        "video": info.path.name, "path": str(info.path.resolve()), "codec": info.codec,
-        "fps": round(fps, 3), "width": info.width, "height": info.height,
+        "video": info.path.name,
+        "path": str(info.path.resolve()),
+        "codec": info.codec,
+        "fps": round(fps, 3),
+        "width": info.width,
+        "height": info.height,
         "rotation_deg": info.rotation_deg,
-        "frames_announced": info.frames_announced, "frames_decoded": len(scores),
-        "windows": len(chosen), "frames_kept": len(video.kept), "decoding_passes": video.passes,
-        "sharpness": {"measure": "variance of the Laplacian of luma",
-                      "measured_at": list(measure_size(info.width, info.height)),
-                      "median_of_chosen": round(median, 2), "min": round(float(scores.min()), 2),
-                      "max": round(float(scores.max()), 2),
-                      "blur_threshold": round(video.threshold, 2)},
+        "frames_announced": info.frames_announced,
+        "frames_decoded": len(scores),
+        "windows": len(chosen),
+        "frames_kept": len(video.kept),
+        "decoding_passes": video.passes,
+        "sharpness": {
+            "measure": "variance of the Laplacian of luma",
+            "measured_at": list(measure_size(info.width, info.height)),
+            "median_of_chosen": round(median, 2),
+            "min": round(float(scores.min()), 2),
+            "max": round(float(scores.max()), 2),
+            "blur_threshold": round(video.threshold, 2),
+        },
         "kept": [frame(int(i)) for i in video.kept],
         "dropped": dropped,
         "notes": notes,

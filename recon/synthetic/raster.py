@@ -187,7 +187,7 @@ def interpolate(fragments: Fragments, faces: Tensor, attributes: Tensor) -> Tens
     return torch.where(fragments.mask[..., None], values, 0.0)
 
 
-def rasterize_slow(
+def rasterize_reference(
     points_in_world: Tensor,
     faces: Tensor,
     K: Tensor,

@@ -19,6 +19,8 @@ from torch import Tensor
 from recon.cameras import Cameras
 from recon.cameras.cameras import intrinsics_matrix
 from recon.cameras.conventions import rotation_from_quat_wxyz
+from recon.cameras.look_at import look_at
+from recon.options import opt
 from recon.synthetic.raster import front_facing, interpolate, rasterize
 
 PART_NAMES = ("plate", "box", "ellipsoid", "torus")
@@ -28,17 +30,21 @@ PART_NAMES = ("plate", "box", "ellipsoid", "torus")
 class SceneConfig:
     """Geometry, texture and light of the sample scene (lengths in metres, world z up)."""
 
-    seed: int = 0  # seeds the texture's random colours and lattice orientations
-    plate_center: tuple[float, float, float] = (0.3, -0.2, 0.3)  # centre of the plate's top face
+    seed: int = opt(0, "seeds the texture's random colours and lattice orientations")
+    plate_center: tuple[float, float, float] = opt(
+        (0.3, -0.2, 0.3), "centre of the plate's top face"
+    )
     # the 4 cm thick disk the objects stand on; it fills each view up to the image borders,
     # where features pin down a view's focal length (a smaller plate doubles SfM pose errors)
     plate_radius: float = 1.0
-    coarse_cell: float = 0.09  # edge of the random-colour cells (~12 px at 1.9 m, f=250 px)
-    fine_cell: float = 0.035  # edge of the random-brightness cells that add corners inside them
-    small_dot_cell: float = 0.07  # one dot of contrasting colour per cell: SIFT-sized blobs
-    large_dot_cell: float = 0.16  # a second, coarser layer of dots for the larger SIFT scales
-    light_direction: tuple[float, float, float] = (0.4, -0.3, 0.85)  # towards the light
-    ambient: float = 0.6  # light on faces turned away, so their texture keeps its contrast
+    coarse_cell: float = opt(0.09, "edge of the random-colour cells (~12 px at 1.9 m, f=250 px)")
+    fine_cell: float = opt(
+        0.035, "edge of the random-brightness cells that add corners inside them"
+    )
+    small_dot_cell: float = opt(0.07, "one dot of contrasting colour per cell: SIFT-sized blobs")
+    large_dot_cell: float = opt(0.16, "a second, coarser layer of dots for the larger SIFT scales")
+    light_direction: tuple[float, float, float] = opt((0.4, -0.3, 0.85), "towards the light")
+    ambient: float = opt(0.6, "light on faces turned away, so their texture keeps its contrast")
 
 
 @dataclass(frozen=True)
@@ -243,19 +249,6 @@ def render_view(
     alpha = hit.double().view(h, s, w, s).mean((1, 3))
     rgb = torch.where(alpha[..., None] > 0, premultiplied / alpha.clamp_min(1e-12)[..., None], 1.0)
     return torch.cat([rgb, alpha[..., None]], -1), frags.depth[s // 2 :: s, s // 2 :: s]
-
-
-def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
-    """OpenCV cam_from_world (4, 4) of a camera at `eye` whose optical axis (z) points at
-    `target` and whose image 'up' (-y) is as close to `up` as possible."""
-    z = (target - eye) / (target - eye).norm()
-    x = torch.linalg.cross(z, up)
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
-    cam_from_world = torch.eye(4, dtype=eye.dtype)
-    cam_from_world[:3, :3], cam_from_world[:3, 3] = R, -R @ eye
-    return cam_from_world
 
 
 def ring_cameras(

@@ -3,42 +3,51 @@
 from __future__ import annotations
 
 import dataclasses
-import inspect
-import re
 from dataclasses import dataclass
+
+from recon.options import opt
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     method: str  # nerf | ngp | plenoxel | 3dgs
-    preset: str = "fast"  # fast (CPU default) | paper (the paper's settings; GPU-sized)
-    steps: int = 0  # stop after this many steps (0 = no step limit)
-    time_budget_s: float = 0.0  # stop within this many seconds of wall time, evaluations included (0 = no limit)
-    seed: int = 0  # seeds torch/numpy; same seed + threads + device = same run
-    max_side: int = 0  # train on images whose longer side is at most N px (0 = chosen for the method and budget)
-    downscale: int = 0  # train on the sfm images downscaled by K (0 = chosen for the method and budget)
-    eval_every_s: float = 30.0  # held-out PSNR every this many seconds of training time
-    eval_views: int = 4  # held-out views used for the periodic PSNR (evenly spaced test views)
-    eval_max_side: int = 256  # the periodic PSNR renders at most this longer side (cheap, and inside the budget)
-    eval_max_fraction: float = 0.1  # a periodic PSNR waits while evaluations would take more than this fraction of the run's wall time (0 = no cap); a slow renderer then evaluates less often
-    patience: int = 0  # stop when held-out PSNR has not improved for this many evals (0 = off)
-    min_improvement_db: float = 0.05  # what counts as an improvement for `patience`
-    checkpoint_every_s: float = 60.0  # checkpoint interval in training seconds (and at the end)
-    keep_checkpoints: int = 2  # older checkpoints are deleted
-    threads: int = 0  # torch CPU threads (0 = all cores)
-    device: str = "auto"  # auto (cuda when available) | cpu | cuda
-
-
-def field_help(cls) -> dict[str, str]:
-    """The `# comment` after each dataclass field, used as its help text."""
-    try:
-        src = inspect.getsource(cls)
-    except (OSError, TypeError):
-        return {}
-    out = {}
-    for m in re.finditer(r"^\s+(\w+)\s*:[^=\n]+=[^#\n]*#\s*(.+)$", src, re.MULTILINE):
-        out[m.group(1)] = m.group(2).strip()
-    return out
+    preset: str = opt("fast", "fast: sized for a CPU; paper: the paper's settings (GPU-sized)")
+    steps: int = opt(0, "stop after this many steps (0 = no step limit)")
+    time_budget_s: float = opt(
+        0.0,
+        "stop within this many seconds of wall time, evaluations included (0 = no limit)",
+        flag="--time-budget",
+    )
+    seed: int = opt(0, "seeds torch/numpy; same seed + threads + device = same run")
+    max_side: int = opt(
+        0,
+        "train on images whose longer side is at most N px (0 = chosen for the method and budget)",
+    )
+    downscale: int = opt(
+        0, "train on the sfm images downscaled by K (0 = chosen for the method and budget)"
+    )
+    eval_every_s: float = opt(
+        30.0, "held-out PSNR every this many seconds of training time", flag="--eval-every"
+    )
+    eval_views: int = opt(4, "held-out views used for the periodic PSNR (evenly spaced test views)")
+    eval_max_side: int = opt(
+        256, "the periodic PSNR renders at most this longer side (cheap, and inside the budget)"
+    )
+    eval_max_fraction: float = opt(
+        0.1,
+        "a periodic PSNR waits while evaluations would take more than this fraction of the "
+        "run's wall time (0 = no cap); a slow renderer then evaluates less often",
+    )
+    patience: int = opt(0, "stop when held-out PSNR has not improved for this many evals (0 = off)")
+    min_improvement_db: float = opt(0.05, "what counts as an improvement for `patience`")
+    checkpoint_every_s: float = opt(
+        60.0, "checkpoint interval in training seconds (and at the end)", flag="--checkpoint-every"
+    )
+    keep_checkpoints: int = opt(2, "older checkpoints are deleted")
+    threads: int = opt(0, "torch CPU threads (0 = all cores)")
+    device: str = opt(
+        "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
+    )
 
 
 def _parse_value(text: str, typ, default):

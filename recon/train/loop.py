@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.cameras import Cameras
+from recon.metrics.image import training_psnr
 from recon.models.base import Model, TrainData
 from recon.train.config import TrainConfig
 
@@ -34,8 +35,12 @@ class LoopState:
 
 
 @torch.no_grad()
-def heldout_psnr(model: Model, cameras: Cameras, images: torch.Tensor,
-                 interrupted: Callable[[], bool] = lambda: False) -> float:
+def heldout_psnr(
+    model: Model,
+    cameras: Cameras,
+    images: torch.Tensor,
+    interrupted: Callable[[], bool] = lambda: False,
+) -> float:
     """Mean PSNR (dB) of the model's renders of held-out views against the photos. Raises
     KeyboardInterrupt between two views once `interrupted()` (Ctrl-C / SIGTERM never waits for
     a whole evaluation)."""
@@ -48,7 +53,7 @@ def heldout_psnr(model: Model, cameras: Cameras, images: torch.Tensor,
                 raise KeyboardInterrupt
             rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
             mse = torch.mean((rgb - images[i].to(rgb.device)) ** 2).item()
-            psnrs.append(-10.0 * math.log10(max(mse, 1e-10)))
+            psnrs.append(training_psnr(mse))
     finally:
         model.train(was_training)
     return float(sum(psnrs) / len(psnrs))
@@ -66,10 +71,18 @@ def should_stop(cfg: TrainConfig, st: LoopState) -> str | None:
     return None
 
 
-def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs: torch.Tensor | None,
-             cfg: TrainConfig, st: LoopState, log: Callable[[dict], None],
-             checkpoint: Callable[[LoopState], None], progress=None,
-             interrupted: Callable[[], bool] = lambda: False) -> str:
+def run_loop(
+    model: Model,
+    data: TrainData,
+    held_cams: Cameras | None,
+    held_imgs: torch.Tensor | None,
+    cfg: TrainConfig,
+    st: LoopState,
+    log: Callable[[dict], None],
+    checkpoint: Callable[[LoopState], None],
+    progress=None,
+    interrupted: Callable[[], bool] = lambda: False,
+) -> str:
     """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
 
     A non-finite loss is never trained on silently: it raises FloatingPointError at once (the
@@ -105,9 +118,15 @@ def run_loop(model: Model, data: TrainData, held_cams: Cameras | None, held_imgs
         if st.step % 10 == 0 or st.step == 1:
             log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
         if progress is not None:
-            progress("train", st.step, total, loss=stats.get("loss"), psnr=stats.get("psnr"),
-                     best_test_psnr=None if st.best_psnr == -math.inf else round(st.best_psnr, 2),
-                     t=f"{st.wall_s:.0f}s")
+            progress(
+                "train",
+                st.step,
+                total,
+                loss=stats.get("loss"),
+                psnr=stats.get("psnr"),
+                best_test_psnr=None if st.best_psnr == -math.inf else round(st.best_psnr, 2),
+                t=f"{st.wall_s:.0f}s",
+            )
         if st.wall_s - st.last_ckpt_wall >= cfg.checkpoint_every_s:
             require_finite_parameters(model, st, log)
             checkpoint(st)
@@ -126,7 +145,14 @@ def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict],
     finite, and no later loss would notice it."""
     bad = [name for name, p in model.named_parameters() if not bool(torch.isfinite(p).all())]
     if bad:
-        log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_parameters", "names": bad[:5]})
+        log(
+            {
+                "step": st.step,
+                "wall_s": st.wall_s,
+                "event": "non_finite_parameters",
+                "names": bad[:5],
+            }
+        )
         raise FloatingPointError(f"non-finite values in {', '.join(bad[:3])} after step {st.step}")
 
 
@@ -153,8 +179,15 @@ def _evaluate(model, cams, imgs, cfg, st: LoopState, log, interrupted) -> None:
     else:
         st.best_psnr = max(st.best_psnr, psnr)
         st.evals_since_best += 1
-    log({"step": st.step, "wall_s": round(st.wall_s, 4), "test_psnr": round(psnr, 4),
-         "eval_s": round(st.eval_cost_s, 3), "elapsed_s": round(st.elapsed_s + st.eval_cost_s, 3)})
+    log(
+        {
+            "step": st.step,
+            "wall_s": round(st.wall_s, 4),
+            "test_psnr": round(psnr, 4),
+            "eval_s": round(st.eval_cost_s, 3),
+            "elapsed_s": round(st.elapsed_s + st.eval_cost_s, 3),
+        }
+    )
 
 
 def _round(stats: dict) -> dict:

@@ -38,8 +38,15 @@ class WorkingResolution:
         return asdict(self)
 
 
-def epochs_at(width: int, height: int, n_views: int, policy: ResolutionPolicy, time_budget_s: float,
-              steps: int, threads: int) -> float | None:
+def epochs_at(
+    width: int,
+    height: int,
+    n_views: int,
+    policy: ResolutionPolicy,
+    time_budget_s: float,
+    steps: int,
+    threads: int,
+) -> float | None:
     """Passes over every training pixel the budget allows at this size. Only the bounds that
     depend on the size count: a --steps run of a method that trains on one whole image per step
     makes steps / n_views passes at any size. None: no such bound."""
@@ -52,8 +59,15 @@ def epochs_at(width: int, height: int, n_views: int, policy: ResolutionPolicy, t
     return min(bounds) if bounds else None
 
 
-def planned_steps(width: int, height: int, policy: ResolutionPolicy, time_budget_s: float, steps: int,
-                  threads: int, cpu: bool = True) -> int:
+def planned_steps(
+    width: int,
+    height: int,
+    policy: ResolutionPolicy,
+    time_budget_s: float,
+    steps: int,
+    threads: int,
+    cpu: bool = True,
+) -> int:
     """The steps a run at width x height is expected to make: --steps, or what the time budget
     buys at the policy's throughput on a CPU (pixels_per_step, or one image, per step), the
     smaller of the two; 0 when nothing bounds the run. Only an estimate (a 3DGS step slows as
@@ -63,7 +77,9 @@ def planned_steps(width: int, height: int, policy: ResolutionPolicy, time_budget
     bounds = [steps] if steps > 0 else []
     if time_budget_s > 0 and cpu:
         per_step = policy.pixels_per_step or width * height
-        bounds.append(int(time_budget_s * policy.pixels_per_s * threads / MEASURED_THREADS / per_step))
+        bounds.append(
+            int(time_budget_s * policy.pixels_per_s * threads / MEASURED_THREADS / per_step)
+        )
     return min(bounds) if bounds else 0
 
 
@@ -75,9 +91,18 @@ def downscale_for_max_side(width: int, height: int, max_side: int) -> int:
     return k
 
 
-def choose_resolution(width: int, height: int, n_views: int, policy: ResolutionPolicy,
-                      time_budget_s: float = 0.0, steps: int = 0, threads: int = MEASURED_THREADS,
-                      cpu: bool = True, max_side: int = 0, downscale: int = 0) -> WorkingResolution:
+def choose_resolution(
+    width: int,
+    height: int,
+    n_views: int,
+    policy: ResolutionPolicy,
+    time_budget_s: float = 0.0,
+    steps: int = 0,
+    threads: int = MEASURED_THREADS,
+    cpu: bool = True,
+    max_side: int = 0,
+    downscale: int = 0,
+) -> WorkingResolution:
     """The working resolution for C = n_views training images of width x height (the sfm size).
 
     `downscale` / `max_side` (the user's options) override the rule. On a CPU with a time
@@ -87,6 +112,7 @@ def choose_resolution(width: int, height: int, n_views: int, policy: ResolutionP
     Example: fox, 58 views of 1076 x 1913, 3dgs (350k px/s, 30 epochs), 600 s on 2 threads ->
     K = 5 (215 x 382: 44 epochs; K = 4 would give 28).
     """
+
     def result(k: int, source: str, reason: str) -> WorkingResolution:
         w, h = level_size(width, height, k)
         return WorkingResolution(k, w, h, source, reason)
@@ -94,28 +120,53 @@ def choose_resolution(width: int, height: int, n_views: int, policy: ResolutionP
     if downscale:
         return result(downscale, "downscale", f"--downscale {downscale} was given")
     if max_side:
-        return result(downscale_for_max_side(width, height, max_side), "max_side",
-                      f"--max-side {max_side} was given")
+        return result(
+            downscale_for_max_side(width, height, max_side),
+            "max_side",
+            f"--max-side {max_side} was given",
+        )
     k_cap = downscale_for_max_side(width, height, policy.max_side)
     cap_note = f"the longer side is capped at {policy.max_side} px"
     if not cpu or epochs_at(width, height, n_views, policy, time_budget_s, steps, threads) is None:
-        why = "no budget that depends on the image size" if cpu else "no measured throughput on this device"
+        why = (
+            "no budget that depends on the image size"
+            if cpu
+            else "no measured throughput on this device"
+        )
         return result(k_cap, "auto", f"{why}: {cap_note}")
     k_floor = max(k_cap, downscale_for_max_side(width, height, MIN_SIDE))
     k = k_cap
-    while k < k_floor and epochs_at(*level_size(width, height, k), n_views, policy, time_budget_s,
-                                    steps, threads) < policy.min_epochs:
+    while (
+        k < k_floor
+        and epochs_at(*level_size(width, height, k), n_views, policy, time_budget_s, steps, threads)
+        < policy.min_epochs
+    ):
         k += 1
-    epochs = epochs_at(*level_size(width, height, k), n_views, policy, time_budget_s, steps, threads)
-    budget = " and ".join(x for x in (f"{time_budget_s:g} s" if time_budget_s > 0 else "",
-                                      f"{steps} steps" if steps > 0 else "") if x)
-    why = (f"{budget} at ~{policy.pixels_per_s * threads / MEASURED_THREADS / 1e3:.0f}k px/s give "
-           f"{epochs:.0f} passes over the {n_views} training views at this size "
-           f"(>= {policy.min_epochs:g} wanted)")
+    epochs = epochs_at(
+        *level_size(width, height, k), n_views, policy, time_budget_s, steps, threads
+    )
+    budget = " and ".join(
+        x
+        for x in (
+            f"{time_budget_s:g} s" if time_budget_s > 0 else "",
+            f"{steps} steps" if steps > 0 else "",
+        )
+        if x
+    )
+    why = (
+        f"{budget} at ~{policy.pixels_per_s * threads / MEASURED_THREADS / 1e3:.0f}k px/s give "
+        f"{epochs:.0f} passes over the {n_views} training views at this size "
+        f"(>= {policy.min_epochs:g} wanted)"
+    )
     if k > k_cap:
-        finer = epochs_at(*level_size(width, height, k - 1), n_views, policy, time_budget_s, steps,
-                          threads)
-        why += f"; 1/{k - 1} would give {finer:.0f}" if k > 2 else f"; full size would give {finer:.0f}"
+        finer = epochs_at(
+            *level_size(width, height, k - 1), n_views, policy, time_budget_s, steps, threads
+        )
+        why += (
+            f"; 1/{k - 1} would give {finer:.0f}"
+            if k > 2
+            else f"; full size would give {finer:.0f}"
+        )
     if epochs < policy.min_epochs:
         why += f"; not coarser than {MIN_SIDE} px on the longer side"
     elif k == k_cap and k_cap > 1:
@@ -124,28 +175,49 @@ def choose_resolution(width: int, height: int, n_views: int, policy: ResolutionP
 
 
 # ---- the rule applied to a workspace's scene and a run --------------------------------------
-def working_resolution(scene: Scene, spec: MethodSpec, cfg: TrainConfig, device: torch.device,
-                       ) -> WorkingResolution:
+def working_resolution(
+    scene: Scene,
+    spec: MethodSpec,
+    cfg: TrainConfig,
+    device: torch.device,
+) -> WorkingResolution:
     """The pyramid level this run trains at (see `recon.train.resolution`)."""
     width, height = scene.image_size("train")
-    return choose_resolution(width, height, len(scene.split("train")), spec.resolution,
-                             cfg.time_budget_s, cfg.steps, _threads(cfg), device.type == "cpu",
-                             cfg.max_side, cfg.downscale)
+    return choose_resolution(
+        width,
+        height,
+        len(scene.split("train")),
+        spec.resolution,
+        cfg.time_budget_s,
+        cfg.steps,
+        _threads(cfg),
+        device.type == "cpu",
+        cfg.max_side,
+        cfg.downscale,
+    )
 
 
 def _threads(cfg: TrainConfig) -> int:
     return cfg.threads or torch.get_num_threads() or MEASURED_THREADS
 
 
-def plan_schedules(method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution,
-                   device: torch.device):
+def plan_schedules(
+    method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution, device: torch.device
+):
     """A method whose config has a `schedule_steps` field left at 0 gets the run's planned step
     count there (`resolution.planned_steps`), to lay its step-based schedules out over the run
     it will actually have. Returns the (possibly) updated config."""
     if getattr(method_cfg, "schedule_steps", None) != 0:
         return method_cfg
-    plan = planned_steps(res.width, res.height, spec.resolution, cfg.time_budget_s, cfg.steps,
-                         _threads(cfg), device.type == "cpu")
+    plan = planned_steps(
+        res.width,
+        res.height,
+        spec.resolution,
+        cfg.time_budget_s,
+        cfg.steps,
+        _threads(cfg),
+        device.type == "cpu",
+    )
     return dataclasses.replace(method_cfg, schedule_steps=plan) if plan else method_cfg
 
 
@@ -155,11 +227,17 @@ def trained_resolution(run_doc: dict, scene: Scene) -> WorkingResolution:
     saved = run_doc.get("resolution", {}).get("working")
     if saved:
         return WorkingResolution(**saved)
-    return WorkingResolution(1, *scene.image_size("train"), "downscale", "recorded before levels existed")
+    return WorkingResolution(
+        1, *scene.image_size("train"), "downscale", "recorded before levels existed"
+    )
 
 
-def output_levels(scene: Scene, run_doc: dict, max_side: int = 0, downscale: int = 0,
-                  ) -> tuple[int, int]:
+def output_levels(
+    scene: Scene,
+    run_doc: dict,
+    max_side: int = 0,
+    downscale: int = 0,
+) -> tuple[int, int]:
     """(output level, render level) for `recon eval` / `recon render` of a run: the output is
     at `downscale`, or the level that fits `max_side`, or by default the run's training level;
     it is rendered at the finer of the output and training levels (a coarser output is then

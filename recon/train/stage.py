@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from recon.models.base import METHODS, MethodSpec
-from recon.train.checkpoint import load_latest_checkpoint, save_checkpoint, save_torch
+from recon.models.registry import config_from_json, import_methods, pick_device, save_model
+from recon.train.checkpoint import has_checkpoint, load_latest_checkpoint, save_checkpoint
 from recon.train.config import TrainConfig, build_config
 from recon.train.loop import LoopState, run_loop
 from recon.train.resolution import (
@@ -28,9 +28,8 @@ from recon.train.resolution import (
 )
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
-from recon.workspace.workspace import software_versions
+from recon.workspace.workspace import RUN_SCHEMA_VERSION, software_versions
 
-MODEL_FILE = "model.pt"
 MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
 ROLLBACK_LR_FACTOR = 0.5  # every rollback halves all learning rates for the rest of the process
 
@@ -51,8 +50,10 @@ class LearningRateScale:
             register_optimizer_step_pre_hook,
         )
 
-        self._handles = [register_optimizer_step_pre_hook(lambda opt, *_: self._apply(opt, self.scale)),
-                         register_optimizer_step_post_hook(lambda opt, *_: self._apply(opt, 1 / self.scale))]
+        self._handles = [
+            register_optimizer_step_pre_hook(lambda opt, *_: self._apply(opt, self.scale)),
+            register_optimizer_step_post_hook(lambda opt, *_: self._apply(opt, 1 / self.scale)),
+        ]
         return self
 
     @staticmethod
@@ -64,28 +65,6 @@ class LearningRateScale:
     def __exit__(self, *exc) -> None:
         for h in self._handles:
             h.remove()
-
-
-def import_methods() -> dict[str, MethodSpec]:
-    """Import every method module so it registers itself; missing ones are simply absent."""
-    import importlib
-
-    for module in ("recon.models.nerf", "recon.models.ngp", "recon.models.plenoxel",
-                   "recon.gaussians.model"):
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            if not module.startswith(e.name or "\0"):
-                raise
-    return METHODS
-
-
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise WorkspaceError("--device cuda was asked for but no CUDA device is available")
-    return torch.device(name)
 
 
 def seed_everything(seed: int) -> None:
@@ -102,48 +81,14 @@ def heldout_views(scene: Scene, n: int) -> list[int]:
     return [test[i] for i in sorted(set(pick.tolist()))]
 
 
-def model_path(ws: Workspace, run: str) -> Path:
-    return ws.run_dir(run) / MODEL_FILE
-
-
-def save_model(ws: Workspace, run: str, method: str, method_cfg: dict, model) -> Path:
-    path = model_path(ws, run)
-    save_torch({"method": method, "config": method_cfg, "state_dict": model.state_dict()}, path)
-    return path
-
-
-def load_model(ws: Workspace, run: str, device="cpu"):
-    """Rebuild a trained model of a run -> (model, scene, run.json dict)."""
-    path = model_path(ws, run)
-    if not ws.run_json(run).exists():
-        raise WorkspaceError(f"run '{run}' does not exist in {ws.root} (runs: {', '.join(ws.runs()) or 'none'})")
-    if not path.exists():
-        raise WorkspaceError(f"run '{run}' has no finished model yet (train it or resume it)")
-    saved = torch.load(path, map_location="cpu", weights_only=True)
-    spec = import_methods()[saved["method"]]
-    scene = load_scene(ws)
-    model = spec.build(spec.config_cls(**_tuples(spec.config_cls, saved["config"])), scene.info)
-    model.load_state_dict(saved["state_dict"])
-    model.to(device).eval()
-    return model, scene, json.loads(ws.run_json(run).read_text())
-
-
-def _tuples(cls, d: dict) -> dict:
-    import dataclasses
-
-    out = dict(d)
-    for f in dataclasses.fields(cls):
-        if isinstance(f.default, tuple) and isinstance(out.get(f.name), list):
-            out[f.name] = tuple(out[f.name])
-    return out
-
-
 def check_run(ws: Workspace, run: str, resume: bool, force: bool) -> bool:
     """Refuse what cannot be done; True when an existing run is to be replaced (--force)."""
     exists = ws.run_dir(run).exists()
     if exists and not resume and not force:
-        raise WorkspaceError(f"run '{run}' already exists: pass --resume to continue it, "
-                             "--force to overwrite it, or --run NAME for a new run")
+        raise WorkspaceError(
+            f"run '{run}' already exists: pass --resume to continue it, "
+            "--force to overwrite it, or --run NAME for a new run"
+        )
     if resume and not ws.run_json(run).exists():
         raise WorkspaceError(f"cannot resume: run '{run}' does not exist")
     return exists and not resume
@@ -158,13 +103,23 @@ def set_threads(n: int) -> None:
     numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
 
 
-def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resume: bool,
-          force: bool, log_fn=print, progress=None) -> dict:
+def train(
+    ws: Workspace,
+    run: str,
+    cfg: TrainConfig,
+    overrides: list[str],
+    resume: bool,
+    force: bool,
+    log_fn=print,
+    progress=None,
+) -> dict:
     """Train (or resume) run `run`; returns the run summary written to run.json."""
     ws.require_fresh("sfm", force)
     methods = import_methods()
     if cfg.method not in methods:
-        raise WorkspaceError(f"unknown method {cfg.method!r} (available: {', '.join(sorted(methods))})")
+        raise WorkspaceError(
+            f"unknown method {cfg.method!r} (available: {', '.join(sorted(methods))})"
+        )
     spec = methods[cfg.method]
     if cfg.threads:
         set_threads(cfg.threads)
@@ -178,11 +133,18 @@ def train(ws: Workspace, run: str, cfg: TrainConfig, overrides: list[str], resum
 def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progress) -> dict:
     if resume:
         saved = json.loads(ws.run_json(run).read_text())
-        method_cfg = spec.config_cls(**_tuples(spec.config_cls, saved["config"]))
+        method_cfg = spec.config_cls(**config_from_json(spec.config_cls, saved["config"]))
         train_fields = {f for f in TrainConfig.__dataclass_fields__}
-        cfg = TrainConfig(**{**{k: v for k, v in saved["train"].items() if k in train_fields},
-                             **{k: v for k, v in asdict(cfg).items()
-                                if k in ("steps", "time_budget_s", "patience")}})
+        cfg = TrainConfig(
+            **{
+                **{k: v for k, v in saved["train"].items() if k in train_fields},
+                **{
+                    k: v
+                    for k, v in asdict(cfg).items()
+                    if k in ("steps", "time_budget_s", "patience")
+                },
+            }
+        )
     else:
         method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
     try:
@@ -196,7 +158,7 @@ def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progre
 def discard_unresumable_run(ws: Workspace, run: str) -> None:
     """A new run that failed before any checkpoint landed (disk full, unreadable scene) holds
     nothing to resume: remove it so a failed command leaves the workspace as it was."""
-    if not (ws.checkpoints_dir(run) / "index.json").exists():
+    if not has_checkpoint(ws.checkpoints_dir(run)):
         shutil.rmtree(ws.run_dir(run), ignore_errors=True)
 
 
@@ -210,8 +172,10 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         res = working_resolution(scene, spec, cfg, device)
         method_cfg = plan_schedules(method_cfg, spec, cfg, res, device)
     sfm_w, sfm_h = scene.image_size("train")
-    log_fn(f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
-           f"{res.reason}")
+    log_fn(
+        f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
+        f"{res.reason}"
+    )
     if getattr(method_cfg, "schedule_steps", 0):
         log_fn(f"schedules laid out for a run of ~{method_cfg.schedule_steps} steps")
     data = load_train_data(ws, scene, "train", device, res.downscale)
@@ -220,13 +184,24 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     held_cams = scene.cameras(held, device, k_eval) if held else None
     held_imgs = load_images(ws, scene, held, k_eval).to(device) if held else None
     model = spec.build(method_cfg, scene.info).to(device)
-    resolution = {"working": res.to_json(), "sfm_size": [sfm_w, sfm_h],
-                  "periodic_eval": {"downscale": k_eval,
-                                    "size": list(level_size(sfm_w, sfm_h, k_eval))}}
-    run_doc = {"run": run, "method": spec.name, "preset": cfg.preset, "seed": cfg.seed,
-               "config": asdict(method_cfg), "train": asdict(cfg), "resolution": resolution,
-               "versions": software_versions(),
-               "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "status": "running"}
+    resolution = {
+        "working": res.to_json(),
+        "sfm_size": [sfm_w, sfm_h],
+        "periodic_eval": {"downscale": k_eval, "size": list(level_size(sfm_w, sfm_h, k_eval))},
+    }
+    run_doc = {
+        "schema_version": RUN_SCHEMA_VERSION,
+        "run": run,
+        "method": spec.name,
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "config": asdict(method_cfg),
+        "train": asdict(cfg),
+        "resolution": resolution,
+        "versions": software_versions(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "status": "running",
+    }
     st = LoopState()
     log_path = ws.log_jsonl(run)
     ckpt_dir = ws.checkpoints_dir(run)
@@ -249,28 +224,47 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         log_file.flush()
 
     def checkpoint(state: LoopState) -> None:
-        save_checkpoint(ckpt_dir, state.step, {
-            "model": model.state_dict(), "training": model.training_state(),
-            "loop": {k: v for k, v in state.__dict__.items()}, "rng": torch.get_rng_state(),
-        }, cfg.keep_checkpoints)
+        save_checkpoint(
+            ckpt_dir,
+            state.step,
+            {
+                "model": model.state_dict(),
+                "training": model.training_state(),
+                "loop": {k: v for k, v in state.__dict__.items()},
+                "rng": torch.get_rng_state(),
+            },
+            cfg.keep_checkpoints,
+        )
 
     def rollback(cause: str) -> LoopState:
         """Reload the last good checkpoint after a non-finite loss; the RNG moves on, so the
         retried steps see other rays / views."""
         ck = load_latest_checkpoint(ckpt_dir, log_fn)
         if ck is None:
-            raise FloatingPointError("the loss became non-finite before the first checkpoint; "
-                                     "lower the learning rates (see --list-options)")
+            raise FloatingPointError(
+                "the loss became non-finite before the first checkpoint; "
+                "lower the learning rates (see --list-options)"
+            )
         model.load_state_dict(ck["model"])
         model.load_training_state(ck["training"])
         state = LoopState(**{**ck["loop"], "elapsed_s": st.elapsed_s})  # time spent stays spent
         torch.manual_seed(cfg.seed + 7919 * (rollbacks + 1))
         model.reseed(cfg.seed + 7919 * (rollbacks + 1))
         lr_scale.scale *= ROLLBACK_LR_FACTOR
-        log({"step": state.step, "wall_s": state.wall_s, "event": "rollback", "count": rollbacks + 1,
-             "cause": cause, "lr_scale": lr_scale.scale})
-        log_fn(f"{cause}: rolled back to step {state.step}, learning rates x{lr_scale.scale:g} "
-               f"(rollback {rollbacks + 1} of {MAX_ROLLBACKS})")
+        log(
+            {
+                "step": state.step,
+                "wall_s": state.wall_s,
+                "event": "rollback",
+                "count": rollbacks + 1,
+                "cause": cause,
+                "lr_scale": lr_scale.scale,
+            }
+        )
+        log_fn(
+            f"{cause}: rolled back to step {state.step}, learning rates x{lr_scale.scale:g} "
+            f"(rollback {rollbacks + 1} of {MAX_ROLLBACKS})"
+        )
         return state
 
     checkpoint(st)  # a known-good state to roll back to
@@ -286,8 +280,18 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         with LearningRateScale() as lr_scale:
             while True:
                 try:
-                    reason = run_loop(model, data, held_cams, held_imgs, cfg, st, log, checkpoint, progress,
-                                      interrupted=lambda: stop["requested"])
+                    reason = run_loop(
+                        model,
+                        data,
+                        held_cams,
+                        held_imgs,
+                        cfg,
+                        st,
+                        log,
+                        checkpoint,
+                        progress,
+                        interrupted=lambda: stop["requested"],
+                    )
                     break
                 except FloatingPointError as e:
                     if rollbacks >= MAX_ROLLBACKS:
@@ -301,26 +305,40 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         log_file.close()
         raise KeyboardInterrupt(
             f"interrupted at step {st.step}; checkpoint saved. Resume with: "
-            f"recon train -w {ws.root} --run {run} --resume")
+            f"recon train -w {ws.root} --run {run} --resume"
+        )
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     checkpoint(st)
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
     log_file.close()
-    save_model(ws, run, spec.name, asdict(method_cfg), model)
-    summary = {**run_doc, "status": "done", "stop_reason": reason, "steps": st.step,
-               "train_wall_s": round(st.wall_s, 3), "elapsed_s": round(st.elapsed_s, 3),
-               "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
-               "model_stats": {k: float(v) for k, v in model.stats().items()},
-               "model_bytes": os.path.getsize(model_path(ws, run)),
-               "device": str(device), "threads": torch.get_num_threads(),
-               "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+    save_model(ws.model_path(run), spec.name, asdict(method_cfg), model)
+    summary = {
+        **run_doc,
+        "status": "done",
+        "stop_reason": reason,
+        "steps": st.step,
+        "train_wall_s": round(st.wall_s, 3),
+        "elapsed_s": round(st.elapsed_s, 3),
+        "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
+        "model_stats": {k: float(v) for k, v in model.stats().items()},
+        "model_bytes": os.path.getsize(ws.model_path(run)),
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+    }
     atomic_write_json(ws.run_json(run), summary)
-    ws.record_stage(f"train/{run}", config={"train": asdict(cfg), "method": asdict(method_cfg)},
-                    inputs={"cameras": ws.cameras_json}, outputs={"model": model_path(ws, run)},
-                    upstream=["sfm"], started=started, ended=time.time(),
-                    extra={"stop_reason": reason, "steps": st.step})
+    ws.record_stage(
+        f"train/{run}",
+        config={"train": asdict(cfg), "method": asdict(method_cfg)},
+        inputs={"cameras": ws.cameras_json},
+        outputs={"model": ws.model_path(run)},
+        upstream=["sfm"],
+        started=started,
+        ended=time.time(),
+        extra={"stop_reason": reason, "steps": st.step},
+    )
     return summary
 
 
@@ -328,6 +346,10 @@ def _truncate_log(path: Path, step: int) -> None:
     """Drop log lines written after the checkpoint we resume from."""
     if not path.exists():
         return
-    keep = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln).get("step", 0) <= step]
+    keep = [
+        ln
+        for ln in path.read_text().splitlines()
+        if ln.strip() and json.loads(ln).get("step", 0) <= step
+    ]
     with atomic_path(path) as tmp:
         tmp.write_text("".join(ln + "\n" for ln in keep))

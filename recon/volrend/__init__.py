@@ -1,7 +1,9 @@
-"""ONE volume-rendering core shared by the volume methods (nerf, ngp, plenoxel).
+"""ONE rendering core: the volume methods (nerf, ngp, plenoxel) composite through it, and so
+does the 3DGS reference rasterizer (`alpha_compositing`), which the numba kernels are tested
+against.
 
 Pure functions over sample intervals, padded (R, S) or packed (N,) + ray_indices:
-  volrend      - alpha, exclusive transmittance, weights, compositing (seed "Quadrature").
+  volrend      - alpha, exclusive transmittance, weights, compositing (Max 1995; Mildenhall et al. 2020, eq. 3).
   samplers     - ray/box intersection, stratified and inverse-CDF (hierarchical) sampling.
   occupancy    - occupancy bitfield, marching with empty-space skipping, early termination.
   contraction  - mip-NeRF 360 scene contraction for unbounded scenes.
@@ -20,10 +22,12 @@ from recon.volrend.samplers import (
 from recon.volrend.volrend import (
     VolumeRender,
     accumulate_along_rays,
+    alpha_compositing,
     exclusive_cumsum,
     render_transmittance,
     render_weights,
     render_with_fn,
+    surface_depth,
     volume_render,
 )
 
@@ -31,6 +35,7 @@ __all__ = [
     "OccupancyGrid",
     "VolumeRender",
     "accumulate_along_rays",
+    "alpha_compositing",
     "contract",
     "exclusive_cumsum",
     "intervals_from_points",
@@ -45,6 +50,7 @@ __all__ = [
     "scene_to_unit_cube",
     "spaced_intervals",
     "stratified_intervals",
+    "surface_depth",
     "terminated_mask",
     "volume_render",
 ]

@@ -1,4 +1,4 @@
-"""Scene contraction for unbounded scenes (mip-NeRF 360, seed "The current research frontier"):
+"""Scene contraction for unbounded scenes (Barron et al. 2022, "Mip-NeRF 360", eq. 10):
 
     contract(x) = x                        if |x| <= 1
                   (2 - 1/|x|) x / |x|      otherwise,

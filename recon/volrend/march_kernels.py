@@ -1,4 +1,4 @@
-"""Fast CPU twin of `OccupancyGrid.sample` (numba): march every ray at a fixed (or
+"""Fast CPU twin of `OccupancyGrid.march_torch` (numba): march every ray at a fixed (or
 cone-growing) step and emit ONLY the intervals whose midpoint falls in an occupied cell,
 without materialising the dense list of all marching intervals first.
 
@@ -68,8 +68,26 @@ def _occupied(o, d, t, lo, hi, unbounded, occ, res):
 
 
 @numba.njit(cache=True)
-def _march_ray(r, o, d, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, out_s, out_e,
-               write):
+def _march_ray(
+    r,
+    o,
+    d,
+    t_min,
+    t_max,
+    step,
+    cone,
+    t_far,
+    u,
+    lo,
+    hi,
+    unbounded,
+    occ,
+    res,
+    cap,
+    out_s,
+    out_e,
+    write,
+):
     """Count (write=False) or write the kept intervals of ray r, at most `cap` of them (the
     first ones, front to back; cap <= 0: no limit); returns how many."""
     if not t_max > t_min:
@@ -94,29 +112,96 @@ def _march_ray(r, o, d, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, o
 
 
 @numba.njit(parallel=True, cache=True)
-def _count(origins, dirs, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, counts):
+def _count(
+    origins, dirs, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, counts
+):
     dummy = np.empty(0, dtype=origins.dtype)
     for r in numba.prange(origins.shape[0]):
-        counts[r] = _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, t_far, u[r], lo, hi,
-                               unbounded, occ, res, cap, dummy, dummy, False)
+        counts[r] = _march_ray(
+            r,
+            origins[r],
+            dirs[r],
+            t_min[r],
+            t_max[r],
+            step,
+            cone,
+            t_far,
+            u[r],
+            lo,
+            hi,
+            unbounded,
+            occ,
+            res,
+            cap,
+            dummy,
+            dummy,
+            False,
+        )
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill(origins, dirs, t_min, t_max, step, cone, t_far, u, lo, hi, unbounded, occ, res, cap, offsets,
-          ray_indices, starts, ends):
+def _fill(
+    origins,
+    dirs,
+    t_min,
+    t_max,
+    step,
+    cone,
+    t_far,
+    u,
+    lo,
+    hi,
+    unbounded,
+    occ,
+    res,
+    cap,
+    offsets,
+    ray_indices,
+    starts,
+    ends,
+):
     for r in numba.prange(origins.shape[0]):
         a = offsets[r]
         b = offsets[r + 1]
         if b > a:
-            _march_ray(r, origins[r], dirs[r], t_min[r], t_max[r], step, cone, t_far, u[r], lo, hi, unbounded,
-                       occ, res, cap, starts[a:b], ends[a:b], True)
+            _march_ray(
+                r,
+                origins[r],
+                dirs[r],
+                t_min[r],
+                t_max[r],
+                step,
+                cone,
+                t_far,
+                u[r],
+                lo,
+                hi,
+                unbounded,
+                occ,
+                res,
+                cap,
+                starts[a:b],
+                ends[a:b],
+                True,
+            )
             ray_indices[a:b] = r
 
 
-def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, occupied: Tensor,
-                   resolution: int, aabb: Tensor, unbounded: bool, step: float, cone_angle: float = 0.0,
-                   u: Tensor | None = None, max_samples: int = 0,
-                   disparity_from: float = math.inf) -> tuple[Tensor, Tensor, Tensor]:
+def march_occupied(
+    origins: Tensor,
+    dirs: Tensor,
+    t_min: Tensor,
+    t_max: Tensor,
+    occupied: Tensor,
+    resolution: int,
+    aabb: Tensor,
+    unbounded: bool,
+    step: float,
+    cone_angle: float = 0.0,
+    u: Tensor | None = None,
+    max_samples: int = 0,
+    disparity_from: float = math.inf,
+) -> tuple[Tensor, Tensor, Tensor]:
     """Packed (ray_indices (N,), t_starts (N,), t_ends (N,)) of the occupied marching intervals.
 
     origins, dirs: (R, 3) CPU float tensors; t_min, t_max: (R,); occupied: (res^3,) bool;
@@ -135,14 +220,43 @@ def march_occupied(origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor, 
     occ = occupied.contiguous().numpy()
     counts = np.zeros(o.shape[0], dtype=np.int64)
     spacing = (float(step), float(cone_angle), float(disparity_from))
-    _count(o, d, tmin, tmax, *spacing, uu, lo, hi, bool(unbounded), occ, resolution,
-           int(max_samples), counts)
+    _count(
+        o,
+        d,
+        tmin,
+        tmax,
+        *spacing,
+        uu,
+        lo,
+        hi,
+        bool(unbounded),
+        occ,
+        resolution,
+        int(max_samples),
+        counts,
+    )
     offsets = np.zeros(o.shape[0] + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
     n = int(offsets[-1])
     ray_indices = np.empty(n, dtype=np.int64)
     starts = np.empty(n, dtype=o.dtype)
     ends = np.empty(n, dtype=o.dtype)
-    _fill(o, d, tmin, tmax, *spacing, uu, lo, hi, bool(unbounded), occ, resolution,
-          int(max_samples), offsets, ray_indices, starts, ends)
+    _fill(
+        o,
+        d,
+        tmin,
+        tmax,
+        *spacing,
+        uu,
+        lo,
+        hi,
+        bool(unbounded),
+        occ,
+        resolution,
+        int(max_samples),
+        offsets,
+        ray_indices,
+        starts,
+        ends,
+    )
     return torch.from_numpy(ray_indices), torch.from_numpy(starts), torch.from_numpy(ends)

@@ -55,13 +55,19 @@ def march_intervals(
     k = torch.arange(ray_indices.shape[0], device=counts.device) - first[ray_indices]
     k = k.to(s_min.dtype)
     s0, uu = s_min[ray_indices], u[ray_indices]
-    starts = torch.where(k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, step, cone_angle, disparity_from))
-    ends = torch.minimum(_unwarp(s0 + k + 1.0 - uu, step, cone_angle, disparity_from), t_max[ray_indices])
+    starts = torch.where(
+        k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, step, cone_angle, disparity_from)
+    )
+    ends = torch.minimum(
+        _unwarp(s0 + k + 1.0 - uu, step, cone_angle, disparity_from), t_max[ray_indices]
+    )
     keep = ends > starts  # ceil() of a rounded count can add one empty interval at the end
     return ray_indices[keep], starts[keep], ends[keep]
 
 
-def marching_distance(t: Tensor, step: float, cone_angle: float = 0.0, disparity_from: float = math.inf) -> Tensor:
+def marching_distance(
+    t: Tensor, step: float, cone_angle: float = 0.0, disparity_from: float = math.inf
+) -> Tensor:
     """The coordinate s(t) in which `march_intervals` steps are uniform, one unit per step
     (linear in t near, logarithmic along the cone, linear in 1/t beyond disparity_from)."""
     return _warp(t, step, cone_angle, disparity_from)
@@ -96,7 +102,9 @@ def _unwarp(s: Tensor, step: float, cone_angle: float, disparity_from: float = m
     if math.isinf(t_d):
         return t
     t_disp = t_d / (1.0 - (s - s_d).clamp_min(0.0) * c)
-    return torch.where(s <= s_d, t, torch.where(t_disp > 0, t_disp, torch.full_like(t_disp, math.inf)))
+    return torch.where(
+        s <= s_d, t, torch.where(t_disp > 0, t_disp, torch.full_like(t_disp, math.inf))
+    )
 
 
 def cells_of(x_unit: Tensor, resolution: int) -> tuple[Tensor, Tensor]:
@@ -133,8 +141,9 @@ def first_per_ray(ray_indices: Tensor, k: int) -> Tensor:
     return torch.arange(ray_indices.shape[0], device=ray_indices.device) - first < k
 
 
-def ray_spans(ray_indices: Tensor, t_starts: Tensor, t_ends: Tensor, n_rays: int,
-              pad: float = 0.0) -> tuple[Tensor, Tensor]:
+def ray_spans(
+    ray_indices: Tensor, t_starts: Tensor, t_ends: Tensor, n_rays: int, pad: float = 0.0
+) -> tuple[Tensor, Tensor]:
     """Per-ray hull [min t_start - pad, max t_end + pad] of packed intervals (N,) -> (R,) x2.
 
     Rays without any interval get t_first = t_last = 0 (an empty range: no sample). The pad
@@ -185,7 +194,9 @@ class OccupancyGrid(nn.Module):
         """Start from the cells around known surface points x_unit (P, 3) (e.g. SfM points mapped
         to the unit cube) instead of all cells: only these are marched through until the first
         update after warm-up; from then on the density decides, as always."""
-        self.occupied.copy_(dilated_cells(x_unit.to(self.occupied.device), self.resolution, dilation))
+        self.occupied.copy_(
+            dilated_cells(x_unit.to(self.occupied.device), self.resolution, dilation)
+        )
 
     def is_occupied(self, x_unit: Tensor) -> Tensor:
         """(N, 3) unit-cube points -> (N,) bool; points outside the cube are empty."""
@@ -232,7 +243,7 @@ class OccupancyGrid(nn.Module):
     def occupancy_fraction(self) -> float:
         return self.occupied.float().mean().item()
 
-    def sample(
+    def march_torch(
         self,
         origins: Tensor,
         directions: Tensor,
@@ -250,7 +261,9 @@ class OccupancyGrid(nn.Module):
         the first max_samples of them per ray (front to back: what lies behind is left to the
         background, as Instant-NGP's fixed maximum of marching steps does).
         Returns packed ray_indices (N,), t_starts (N,), t_ends (N,)."""
-        ray_indices, starts, ends = march_intervals(t_min, t_max, step, cone_angle, u, disparity_from)
+        ray_indices, starts, ends = march_intervals(
+            t_min, t_max, step, cone_angle, u, disparity_from
+        )
         mids = 0.5 * (starts + ends)
         x = origins[ray_indices] + mids[:, None] * directions[ray_indices]
         keep = self.is_occupied(to_unit(x))
@@ -273,11 +286,34 @@ class OccupancyGrid(nn.Module):
         max_samples: int = 0,
         disparity_from: float = math.inf,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """`sample` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
+        """`march_torch` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
         numba twin (`march_kernels.march_occupied`, never materialises the dense intervals),
-        elsewhere `sample` itself. Same packed (ray_indices, t_starts, t_ends)."""
+        elsewhere `march_torch`. Same packed (ray_indices, t_starts, t_ends)."""
         if origins.device.type == "cpu":
-            return march_occupied(origins, directions, t_min, t_max, self.occupied, self.resolution, aabb,
-                                  unbounded, step, cone_angle, u, max_samples, disparity_from)
-        return self.sample(origins, directions, t_min, t_max, lambda x: scene_to_unit_cube(x, aabb, unbounded),
-                           step, cone_angle, u, max_samples, disparity_from)
+            return march_occupied(
+                origins,
+                directions,
+                t_min,
+                t_max,
+                self.occupied,
+                self.resolution,
+                aabb,
+                unbounded,
+                step,
+                cone_angle,
+                u,
+                max_samples,
+                disparity_from,
+            )
+        return self.march_torch(
+            origins,
+            directions,
+            t_min,
+            t_max,
+            lambda x: scene_to_unit_cube(x, aabb, unbounded),
+            step,
+            cone_angle,
+            u,
+            max_samples,
+            disparity_from,
+        )

@@ -1,4 +1,4 @@
-"""Where samples go along a ray (seed, "Stratified and hierarchical sampling"): ray/box
+"""Where samples go along a ray (Mildenhall et al. 2020, Sec. 5.2): ray/box
 intersection, stratified intervals in [near, far], and inverse-CDF resampling of a coarse
 weight distribution. All functions return padded (R, S) interval tensors for `volrend`.
 """
@@ -18,7 +18,9 @@ def uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | N
     return torch.rand(shape, generator=generator, device=dev, dtype=like.dtype).to(like.device)
 
 
-def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def ray_aabb_intersect(
+    origins: Tensor, directions: Tensor, aabb: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
     """Slab method: t_near = max_k min(t0_k, t1_k), t_far = min_k max(t0_k, t1_k),
     t0/1_k = (aabb[0/1, k] - o_k) / d_k.
 
@@ -40,7 +42,11 @@ def ray_aabb_intersect(origins: Tensor, directions: Tensor, aabb: Tensor) -> tup
 
 
 def stratified_intervals(
-    near: Tensor, far: Tensor, n_samples: int, jitter: bool, generator: torch.Generator | None = None
+    near: Tensor,
+    far: Tensor,
+    n_samples: int,
+    jitter: bool,
+    generator: torch.Generator | None = None,
 ) -> tuple[Tensor, Tensor]:
     """S intervals tiling [near, far]; with jitter, the interior edges e_k (k = 1..S-1) are drawn
     uniformly in [c_{k-1}, c_k], c the centres of the S equal bins, so every location in

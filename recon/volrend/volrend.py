@@ -1,5 +1,5 @@
-"""The volume-rendering quadrature shared by every volume method (seed, "Quadrature, the
-alpha-compositing sum"):
+"""The volume-rendering quadrature shared by every volume method (Max 1995, "Optical
+Models for Direct Volume Rendering"; Mildenhall et al. 2020, eq. 3):
 
     alpha_i = 1 - exp(-sigma_i delta_i),   T_i = exp(-sum_{j<i} sigma_j delta_j),
     w_i = T_i alpha_i,   C = sum_i w_i c_i + (1 - sum_i w_i) c_bg.
@@ -18,6 +18,7 @@ biases every weight.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -34,7 +35,8 @@ def exclusive_cumsum(x: Tensor, ray_indices: Tensor | None = None) -> Tensor:
     """S_i = sum_{j<i, same ray} x_j.
 
     Padded: x (..., S) -> (..., S), along the last axis.
-    Packed: x (N,), ray_indices (N,) non-decreasing -> (N,); a global float64 cumulative sum
+    Packed: x (N, ...), ray_indices (N,) non-decreasing -> (N, ...), along the first axis (each
+    row of trailing values is its own sequence over the ray's samples); a global float64 cumulative sum
     minus each ray's value at its first sample (found by `searchsorted`), so no Python loop.
     The global sum must stay well inside float64 range/precision (see `_TAU_CAP`).
     Example: x = [1, 2, 3, 4], ray_indices = [0, 0, 1, 1] -> [0, 1, 0, 3].
@@ -58,6 +60,33 @@ def render_transmittance(tau: Tensor, ray_indices: Tensor | None = None) -> Tens
     return torch.exp(-exclusive_cumsum(tau.clamp(max=_TAU_CAP), ray_indices))
 
 
+def alpha_compositing(
+    alpha: Tensor,
+    ray_indices: Tensor | None = None,
+    t_min: float = 0.0,
+) -> tuple[Tensor, Tensor]:
+    """Front-to-back compositing of per-sample opacities (the same sum as `render_weights` with
+    alpha given instead of sigma delta; Kerbl et al. 2023, eq. 3): w_i = T_i alpha_i with the
+    exclusive transmittance T_i = prod_{j<i} (1 - alpha_j), taken in log space as
+    exp(sum_{j<i} log(1 - alpha_j)) (`render_transmittance` with tau = -log(1 - alpha)).
+
+    t_min > 0 stops a ray as the 3DGS rasterizer does: from the first sample whose T_i (1 - alpha_i)
+    would fall below t_min on, alpha counts as 0 (that sample included).
+    alpha: (..., S) padded, or (N, ...) packed with ray_indices (N,) (see `exclusive_cumsum`);
+    alpha < 1. Returns (weights, the alphas composited), both shaped like `alpha`.
+    Example: alpha = (0.5, 0.5, 0.5) -> w = (0.5, 0.25, 0.125); with t_min = 0.2 the third
+    sample (T (1 - alpha) = 0.125 < 0.2) is dropped: w = (0.5, 0.25, 0).
+    """
+    tau = (-torch.log1p(-alpha)).clamp(max=_TAU_CAP)
+    if t_min > 0:
+        behind = exclusive_cumsum(tau, ray_indices) + tau  # -log T_i (1 - alpha_i)
+        stop = ((behind > -math.log(t_min)) & (alpha > 0)).to(alpha.dtype)
+        stopped = exclusive_cumsum(stop, ray_indices) + stop > 0
+        alpha = torch.where(stopped, torch.zeros_like(alpha), alpha)
+        tau = (-torch.log1p(-alpha)).clamp(max=_TAU_CAP)
+    return render_transmittance(tau, ray_indices) * alpha, alpha
+
+
 def render_weights(
     sigmas: Tensor, t_starts: Tensor, t_ends: Tensor, ray_indices: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -65,7 +94,7 @@ def render_weights(
 
     sigmas, t_starts, t_ends: (..., S) padded or (N,) packed. Returns (weights, transmittance,
     alphas), each shaped like `sigmas`. alpha uses expm1 so sigma delta = 1e-8 keeps its value.
-    Seed Problem 3: sigma = (0.1, 2, 5, 1), delta = 0.5 -> w = (0.048771, 0.601292, 0.321213,
+    Worked example: sigma = (0.1, 2, 5, 1), delta = 0.5 -> w = (0.048771, 0.601292, 0.321213,
     0.011302).
     """
     tau = sigmas * (t_ends - t_starts)
@@ -94,13 +123,21 @@ def accumulate_along_rays(
     return out.index_add(0, ray_indices, src)
 
 
+def surface_depth(expected: Tensor, acc: Tensor) -> Tensor:
+    """The depth of the surface a pixel or ray sees: the expected depth sum_i w_i d_i divided by
+    the opacity acc = sum_i w_i where acc > 0, and 0 where nothing was hit. Every renderer's
+    depth output goes through it (one formula, one epsilon). Example: w = (0.25, 0.25) at
+    d = (2, 4) -> expected 1.5, acc 0.5 -> 3."""
+    return torch.where(acc > 0, expected / acc.clamp_min(1e-10), torch.zeros_like(expected))
+
+
 @dataclass
 class VolumeRender:
     """Per-ray results of `volume_render`.
 
     rgb: (R, 3) composited on the background; acc: (R,) opacity sum_i w_i;
-    depth: (R,) expected distance sum_i w_i t_mid_i (NOT divided by acc, as in the seed; use
-    `depth / acc.clamp_min(eps)` for the depth of the surface hit);
+    depth: (R,) expected distance sum_i w_i t_mid_i, NOT divided by acc (as NeRF's depth map,
+    Mildenhall et al. 2020); use `depth / acc.clamp_min(eps)` for the depth of the surface hit;
     weights, transmittance: per sample, padded (R, S) or packed (N,).
     """
 

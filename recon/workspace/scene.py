@@ -11,11 +11,11 @@ import numpy as np
 import torch
 
 from recon.cameras.cameras import Cameras
+from recon.cameras.similarity import Similarity
+from recon.io.atomic import atomic_dir, atomic_write_json
 from recon.io.images import read_image, resize_area, write_png
 from recon.io.ply import read_points_ply
 from recon.models.base import SceneInfo, TrainData
-from recon.sfm.normalize import Similarity
-from recon.workspace.atomic import atomic_dir, atomic_write_json
 from recon.workspace.hashing import hash_file
 from recon.workspace.workspace import Workspace, WorkspaceError
 
@@ -44,21 +44,28 @@ class Scene:
     def cameras(self, indices: list[int], device="cpu", downscale: int = 1) -> Cameras:
         """The frames' cameras for images at pyramid level `downscale` (1: the sfm images)."""
         fr = [self.frames[i] for i in indices]
-        K = torch.tensor([[[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]] for f in fr],
-                         dtype=torch.float64)
+        K = torch.tensor(
+            [[[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]] for f in fr],
+            dtype=torch.float64,
+        )
         c = torch.tensor([f["cam_from_world"] for f in fr], dtype=torch.float64)
         w = torch.tensor([f["width"] for f in fr], dtype=torch.int64)
         h = torch.tensor([f["height"] for f in fr], dtype=torch.int64)
         cams = Cameras(K, c, w, h)
         if downscale != 1:
             sizes = [level_size(f["width"], f["height"], downscale) for f in fr]
-            cams = cams.resized(torch.tensor([s[0] for s in sizes]), torch.tensor([s[1] for s in sizes]))
+            cams = cams.resized(
+                torch.tensor([s[0] for s in sizes]), torch.tensor([s[1] for s in sizes])
+            )
         return cams.to(device=device, dtype=torch.float32)
 
     def image_size(self, split: str = "train") -> tuple[int, int]:
         """(W, H) of the split's sfm images (the largest, should they differ)."""
         idx = self.split(split) or list(range(len(self.frames)))
-        return (max(self.frames[i]["width"] for i in idx), max(self.frames[i]["height"] for i in idx))
+        return (
+            max(self.frames[i]["width"] for i in idx),
+            max(self.frames[i]["height"] for i in idx),
+        )
 
     def depth_to_world_units(self, depth: np.ndarray) -> np.ndarray:
         """z-depth in the normalized frame -> original (metric) units."""
@@ -79,8 +86,11 @@ def load_scene(ws: Workspace, with_points: bool = True) -> Scene:
         aabb=torch.tensor(doc["aabb"], dtype=torch.float32),
         unbounded=bool(doc["unbounded"]),
         background=torch.tensor(doc["background"], dtype=torch.float32),
-        near=float(doc["near"]), far=float(doc["far"]),
-        points=points, point_colors=colors, scene_from_world=sim,
+        near=float(doc["near"]),
+        far=float(doc["far"]),
+        points=points,
+        point_colors=colors,
+        scene_from_world=sim,
     )
     return Scene(doc["frames"], sim, info, doc.get("gt_mesh"))
 
@@ -104,7 +114,9 @@ def ensure_pyramid_level(ws: Workspace, scene: Scene, downscale: int) -> None:
             for f in scene.frames:
                 rel = ws.level_image(f["image"], downscale).relative_to(level)
                 img = read_image(ws.resolve(f["image"]))[..., :3]
-                write_png(tmp / rel, resize_area(img, *level_size(f["width"], f["height"], downscale)))
+                write_png(
+                    tmp / rel, resize_area(img, *level_size(f["width"], f["height"], downscale))
+                )
             atomic_write_json(tmp / PYRAMID_MANIFEST, {"downscale": downscale, "source": source})
 
 
@@ -116,21 +128,29 @@ def _level_source(level) -> str | None:
         return None
 
 
-def load_images(ws: Workspace, scene: Scene, indices: list[int], downscale: int = 1) -> torch.Tensor:
+def load_images(
+    ws: Workspace, scene: Scene, indices: list[int], downscale: int = 1
+) -> torch.Tensor:
     """(C, H, W, 3) float32 images of the given frames (all of one size) at pyramid level
     `downscale` (built on first use)."""
     ensure_pyramid_level(ws, scene, downscale)
-    imgs = [read_image(ws.level_image(scene.frames[i]["image"], downscale))[..., :3] for i in indices]
+    imgs = [
+        read_image(ws.level_image(scene.frames[i]["image"], downscale))[..., :3] for i in indices
+    ]
     shapes = {im.shape for im in imgs}
     if len(shapes) > 1:
-        raise WorkspaceError(f"training images have different sizes {sorted(shapes)}; rerun sfm with one camera")
+        raise WorkspaceError(
+            f"training images have different sizes {sorted(shapes)}; rerun sfm with one camera"
+        )
     return torch.from_numpy(np.stack(imgs))
 
 
-def load_train_data(ws: Workspace, scene: Scene, split: str = "train", device="cpu",
-                    downscale: int = 1) -> TrainData:
+def load_train_data(
+    ws: Workspace, scene: Scene, split: str = "train", device="cpu", downscale: int = 1
+) -> TrainData:
     idx = scene.split(split)
     if not idx:
         raise WorkspaceError(f"the scene has no '{split}' images")
-    return TrainData(load_images(ws, scene, idx, downscale).to(device),
-                     scene.cameras(idx, device, downscale))
+    return TrainData(
+        load_images(ws, scene, idx, downscale).to(device), scene.cameras(idx, device, downscale)
+    )

@@ -1,6 +1,6 @@
 """`workspace.json`, stage records, staleness, locks, and every path inside a workspace.
 
-Layout (SPEC §2):
+Layout:
     WS/workspace.json          schema_version + one record per stage output
     WS/images/                 undistorted training images (PNG, composited on the background)
     WS/images_<K>/             the same images area-downsampled by K (built on first use, shared)
@@ -26,10 +26,11 @@ from dataclasses import asdict, is_dataclass
 from pathlib import Path
 
 import recon
-from recon.workspace.atomic import atomic_write_json
+from recon.io.atomic import atomic_write_json
 from recon.workspace.hashing import hash_tree
 
 SCHEMA_VERSION = 1
+RUN_SCHEMA_VERSION = 1  # the layout of runs/RUN/run.json
 
 # Migrations from older schemas: MIGRATIONS[v] turns a version-v document into version v+1.
 MIGRATIONS: dict[int, callable] = {}
@@ -47,8 +48,12 @@ def software_versions() -> dict:
     """Versions that can change a result, recorded with every stage."""
     import torch
 
-    out = {"recon": recon.__version__, "python": platform.python_version(),
-           "torch": torch.__version__, "threads": torch.get_num_threads()}
+    out = {
+        "recon": recon.__version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
     if "numba" in sys.modules:
         out["numba"] = sys.modules["numba"].__version__
         out["numba_threads"] = sys.modules["numba"].get_num_threads()
@@ -79,27 +84,37 @@ class Workspace:
         if root.exists() and any(p for p in root.iterdir() if not p.name.startswith(".")):
             raise WorkspaceError(f"{root} is a non-empty directory without workspace.json")
         root.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(ws.json_path, {"schema_version": SCHEMA_VERSION, "created": now_iso(),
-                                         "stages": {}})
+        atomic_write_json(
+            ws.json_path, {"schema_version": SCHEMA_VERSION, "created": now_iso(), "stages": {}}
+        )
         return ws
 
     @classmethod
     def open(cls, root: Path) -> Workspace:
         ws = cls(root)
         if not ws.json_path.exists():
-            raise WorkspaceError(f"{root} is not a recon workspace (no workspace.json): run `recon sfm` first")
+            raise WorkspaceError(
+                f"{root} is not a recon workspace (no workspace.json): run `recon sfm` first"
+            )
         ws.load()
         return ws
 
+    JSON_NAME = "workspace.json"  # the file that makes a directory a workspace
+    # names inside WS/sfm/, also used while the sfm stage writes them into its staging copy
+    SFM_CAMERAS, SFM_POINTS, SFM_REPORT = "cameras.json", "points.ply", "report.json"
+    SFM_SPARSE, SFM_FRAMES = "sparse", "frames"
+
     @property
     def json_path(self) -> Path:
-        return self.root / "workspace.json"
+        return self.root / self.JSON_NAME
 
     def load(self) -> dict:
         try:
             doc = json.loads(self.json_path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise WorkspaceError(f"{self.json_path} is corrupt ({e.__class__.__name__}: {e})") from e
+            raise WorkspaceError(
+                f"{self.json_path} is corrupt ({e.__class__.__name__}: {e})"
+            ) from e
         version = doc.get("schema_version") if isinstance(doc, dict) else None
         if not isinstance(version, int):
             raise WorkspaceError(f"{self.json_path} has no integer schema_version")
@@ -138,23 +153,23 @@ class Workspace:
     @property
     def frames_dir(self) -> Path:
         """Frames taken from the input video(s), as `<video stem>_<frame index>.png`."""
-        return self.sfm_dir / "frames"
+        return self.sfm_dir / self.SFM_FRAMES
 
     @property
     def cameras_json(self) -> Path:
-        return self.sfm_dir / "cameras.json"
+        return self.sfm_dir / self.SFM_CAMERAS
 
     @property
     def sparse_dir(self) -> Path:
-        return self.sfm_dir / "sparse"
+        return self.sfm_dir / self.SFM_SPARSE
 
     @property
     def points_ply(self) -> Path:
-        return self.sfm_dir / "points.ply"
+        return self.sfm_dir / self.SFM_POINTS
 
     @property
     def sfm_report(self) -> Path:
-        return self.sfm_dir / "report.json"
+        return self.sfm_dir / self.SFM_REPORT
 
     @property
     def runs_dir(self) -> Path:
@@ -166,6 +181,10 @@ class Workspace:
     def run_json(self, run: str) -> Path:
         return self.run_dir(run) / "run.json"
 
+    def model_path(self, run: str) -> Path:
+        """The finished model of a run (`models.registry.save_model`)."""
+        return self.run_dir(run) / "model.pt"
+
     def log_jsonl(self, run: str) -> Path:
         return self.run_dir(run) / "log.jsonl"
 
@@ -175,14 +194,33 @@ class Workspace:
     def renders_dir(self, run: str, name: str) -> Path:
         return self.run_dir(run) / "renders" / name
 
+    def render_json(self, run: str, name: str) -> Path:
+        return self.renders_dir(run, name) / "render.json"
+
+    def render_video(self, run: str, name: str) -> Path:
+        return self.renders_dir(run, name) / "video.mp4"
+
     def mesh_dir(self, run: str) -> Path:
         return self.run_dir(run) / "mesh"
+
+    def mesh_json(self, run: str) -> Path:
+        return self.mesh_dir(run) / "mesh.json"
 
     def export_dir(self, run: str) -> Path:
         return self.run_dir(run) / "export"
 
+    def splat_ply(self, run: str) -> Path:
+        return self.export_dir(run) / "splat.ply"
+
     def eval_dir(self, run: str) -> Path:
         return self.run_dir(run) / "eval"
+
+    def metrics_json(self, run: str) -> Path:
+        return self.eval_dir(run) / "metrics.json"
+
+    @property
+    def pose_accuracy_json(self) -> Path:
+        return self.sfm_dir / "pose_accuracy.json"
 
     @property
     def report_md(self) -> Path:
@@ -195,8 +233,11 @@ class Workspace:
     def runs(self) -> list[str]:
         if not self.runs_dir.exists():
             return []
-        return sorted(p.name for p in self.runs_dir.iterdir()
-                      if (p / "run.json").exists() and not p.name.startswith("."))
+        return sorted(
+            p.name
+            for p in self.runs_dir.iterdir()
+            if (p / "run.json").exists() and not p.name.startswith(".")
+        )
 
     def rel(self, path: Path) -> str:
         """A path as recorded in workspace.json: relative to the root when inside it."""
@@ -250,8 +291,18 @@ class Workspace:
                 fcntl.flock(f, fcntl.LOCK_UN)
 
     # ---- stage records ---------------------------------------------------------------------
-    def record_stage(self, key: str, *, config, inputs: dict[str, Path], outputs: dict[str, Path],
-                     upstream: list[str], started: float, ended: float, extra: dict | None = None) -> dict:
+    def record_stage(
+        self,
+        key: str,
+        *,
+        config,
+        inputs: dict[str, Path],
+        outputs: dict[str, Path],
+        upstream: list[str],
+        started: float,
+        ended: float,
+        extra: dict | None = None,
+    ) -> dict:
         """Write the record of a finished stage: config, input/output content hashes, versions
         and timing. `inputs`/`outputs` map a label to a path (file or folder)."""
         if is_dataclass(config):
@@ -279,7 +330,9 @@ class Workspace:
         """Drop the records of stage `prefix` and its sub-stages; returns what was dropped."""
         with self._json_lock():
             doc = self.load()
-            dropped = {k: v for k, v in doc["stages"].items() if k == prefix or k.startswith(prefix + "/")}
+            dropped = {
+                k: v for k, v in doc["stages"].items() if k == prefix or k.startswith(prefix + "/")
+            }
             doc["stages"] = {k: v for k, v in doc["stages"].items() if k not in dropped}
             atomic_write_json(self.json_path, doc)
         return dropped
@@ -350,7 +403,9 @@ class Workspace:
         if st is None:
             raise WorkspaceError(f"stage '{key}' has not been run in {self.root}")
         if st["state"] != "done" and not force:
-            raise WorkspaceError(f"stage '{key}' is {st['state']} ({st['why']}): rerun it, or pass --force")
+            raise WorkspaceError(
+                f"stage '{key}' is {st['state']} ({st['why']}): rerun it, or pass --force"
+            )
 
 
 def timer() -> float:

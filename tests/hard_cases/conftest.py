@@ -10,15 +10,35 @@ import pytest
 
 from tests.conftest import write_sphere_dataset
 
-FAST_TRAIN = ["--method", "plenoxel", "--eval-views", "1", "--eval-every", "1000",
-              "--set", "resolutions=16,32", "--set", "upsample_steps=10", "--set", "rays_per_batch=512",
-              "--set", "occupancy_res=16", "--set", "samples_per_batch=16384", "--threads", "1"]
+FAST_TRAIN = [
+    "--method",
+    "plenoxel",
+    "--eval-views",
+    "1",
+    "--eval-every",
+    "1000",
+    "--set",
+    "resolutions=16,32",
+    "--set",
+    "upsample_steps=10",
+    "--set",
+    "rays_per_batch=512",
+    "--set",
+    "occupancy_res=16",
+    "--set",
+    "samples_per_batch=16384",
+    "--threads",
+    "1",
+]
 
 
 def snapshot(ws: Path) -> dict[str, str]:
     """Every file in the workspace (lock files aside) -> its sha1."""
-    return {str(p.relative_to(ws)): hashlib.sha1(p.read_bytes()).hexdigest()
-            for p in sorted(ws.rglob("*")) if p.is_file() and ".locks" not in p.parts}
+    return {
+        str(p.relative_to(ws)): hashlib.sha1(p.read_bytes()).hexdigest()
+        for p in sorted(ws.rglob("*"))
+        if p.is_file() and ".locks" not in p.parts
+    }
 
 
 def assert_one_line_error(proc, *fragments: str) -> str:

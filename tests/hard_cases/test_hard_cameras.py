@@ -33,13 +33,17 @@ def border_pixels(size: int, dtype) -> torch.Tensor:
 # float32 in the camera frame: 2e-3 px. A float32 WORLD frame cannot do this at f = 1e5 (a pixel
 # spans 1e-5 rad, float32 rounding of a 2 m camera offset moves a point 1 cm away by ~2 px),
 # so the posed camera is checked in float64, to 1e-8 px.
-@pytest.mark.parametrize("dtype, tol_px, posed", [(torch.float32, 2e-3, False), (torch.float64, 1e-8, True)])
+@pytest.mark.parametrize(
+    "dtype, tol_px, posed", [(torch.float32, 2e-3, False), (torch.float64, 1e-8, True)]
+)
 def test_rays_reproject_onto_their_pixels(f, size, dtype, tol_px, posed):
     K = K_of(f, size, dtype)
     world_from_cam = torch.eye(4, dtype=dtype)
     if posed:
-        world_from_cam[:3, :3] = torch.tensor([[1, 0, 0], [0, math.cos(0.3), -math.sin(0.3)],
-                                               [0, math.sin(0.3), math.cos(0.3)]], dtype=dtype)
+        world_from_cam[:3, :3] = torch.tensor(
+            [[1, 0, 0], [0, math.cos(0.3), -math.sin(0.3)], [0, math.sin(0.3), math.cos(0.3)]],
+            dtype=dtype,
+        )
         world_from_cam[:3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=dtype)
     uv = border_pixels(size, dtype)
     o, d, z_per_t = rays_from_pixels(uv, K, world_from_cam)
@@ -47,24 +51,37 @@ def test_rays_reproject_onto_their_pixels(f, size, dtype, tol_px, posed):
     torch.testing.assert_close(d.norm(dim=-1), torch.ones(len(uv), dtype=dtype))
     for depth in (1e-2, 1.0, 1e3):  # points at z-depth `depth` along each ray
         p_world = o + (depth / z_per_t)[:, None] * d
-        p_cam = (invert_rigid(world_from_cam) @ torch.cat([p_world, torch.ones_like(p_world[:, :1])], -1).T).T
+        p_cam = (
+            invert_rigid(world_from_cam)
+            @ torch.cat([p_world, torch.ones_like(p_world[:, :1])], -1).T
+        ).T
         uv_back, z = project_points(p_cam[:, :3], K)
         assert float((uv_back - uv).abs().max()) < tol_px
-        torch.testing.assert_close(z, torch.full_like(z, depth), rtol=1e-5 if dtype == torch.float32 else 1e-12,
-                                   atol=0)
+        torch.testing.assert_close(
+            z, torch.full_like(z, depth), rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0
+        )
 
 
 def test_a_one_pixel_camera_looks_down_its_optical_axis():
     for f in (10.0, 1e5):
-        cams = Cameras(K_of(f, 1, torch.float32)[None], torch.eye(4)[None], torch.tensor([1]), torch.tensor([1]))
+        cams = Cameras(
+            K_of(f, 1, torch.float32)[None],
+            torch.eye(4)[None],
+            torch.tensor([1]),
+            torch.tensor([1]),
+        )
         o, d, z = camera_rays(cams, 0)
         assert o.shape == d.shape == (1, 1, 3) and z.shape == (1, 1)
         assert d[0, 0].tolist() == [0.0, 0.0, 1.0] and float(z[0, 0]) == 1.0
 
 
 def test_4000_px_camera_scaled_to_one_pixel_keeps_the_centre_ray():
-    big = Cameras(K_of(1e5, 4000, torch.float64)[None], torch.eye(4, dtype=torch.float64)[None],
-                  torch.tensor([4000]), torch.tensor([4000]))
+    big = Cameras(
+        K_of(1e5, 4000, torch.float64)[None],
+        torch.eye(4, dtype=torch.float64)[None],
+        torch.tensor([4000]),
+        torch.tensor([4000]),
+    )
     small = big.scaled(1 / 4000)
     assert small.width.tolist() == [1] and small.height.tolist() == [1]
     _, d, _ = camera_rays(small, 0)

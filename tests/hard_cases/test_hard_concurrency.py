@@ -1,4 +1,4 @@
-"""Two `recon train` processes on one workspace (issue #7): different run names both finish and
+"""Two `recon train` processes on one workspace : different run names both finish and
 both are recorded in workspace.json; a second writer of the same run fails fast on the run lock
 and leaves the first one's run alone. (The lock itself: tests/test_workspace.py.)"""
 
@@ -14,9 +14,27 @@ from tests.hard_cases.conftest import FAST_TRAIN, assert_one_line_error
 
 def start_train(ws, run, steps, *extra):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "recon.cli", "train", "-w", str(ws), "--run", run,
-                             "--steps", str(steps), *FAST_TRAIN, *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "recon.cli",
+            "train",
+            "-w",
+            str(ws),
+            "--run",
+            run,
+            "--steps",
+            str(steps),
+            *FAST_TRAIN,
+            *extra,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        cwd=REPO,
+    )
 
 
 def test_two_runs_with_different_names_both_work(sphere_ws):
@@ -40,8 +58,11 @@ def test_second_writer_of_the_same_run_fails_fast(sphere_ws):
             time.sleep(0.2)
         second = start_train(sphere_ws, "busy", 5, "--resume")
         out, err = second.communicate(timeout=120)  # fails at the lock, never waits for the first
-        assert_one_line_error(subprocess.CompletedProcess(second.args, second.returncode, out, err),
-                              "another recon process", "run-busy")
+        assert_one_line_error(
+            subprocess.CompletedProcess(second.args, second.returncode, out, err),
+            "another recon process",
+            "run-busy",
+        )
         assert first.poll() is None  # the first writer is unharmed...
         assert (sphere_ws / "runs" / "busy" / "run.json").exists()  # ...and so is its run
     finally:

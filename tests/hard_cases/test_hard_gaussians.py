@@ -39,15 +39,23 @@ HARD = {
 def gaussians(means, quats, scales, degree=1, seed=0):
     g = torch.Generator().manual_seed(seed)
     G = means.shape[0]
-    return {"means": means, "quats": quats, "log_scales": torch.log(scales)[:, None].expand(G, 3).clone(),
-            "opacity_logits": torch.full((G,), 2.0, dtype=F64),
-            "sh_dc": torch.rand(G, 1, 3, generator=g, dtype=F64),
-            "sh_rest": 0.1 * torch.randn(G, (degree + 1) ** 2 - 1, 3, generator=g, dtype=F64)}
+    return {
+        "means": means,
+        "quats": quats,
+        "log_scales": torch.log(scales)[:, None].expand(G, 3).clone(),
+        "opacity_logits": torch.full((G,), 2.0, dtype=F64),
+        "sh_dc": torch.rand(G, 1, 3, generator=g, dtype=F64),
+        "sh_rest": 0.1 * torch.randn(G, (degree + 1) ** 2 - 1, 3, generator=g, dtype=F64),
+    }
 
 
 def hard_set():
     means, quats, scales, culled = zip(*HARD.values())
-    g = gaussians(torch.tensor(means, dtype=F64), torch.tensor(quats, dtype=F64), torch.tensor(scales, dtype=F64))
+    g = gaussians(
+        torch.tensor(means, dtype=F64),
+        torch.tensor(quats, dtype=F64),
+        torch.tensor(scales, dtype=F64),
+    )
     return {k: v.requires_grad_() for k, v in g.items()}, torch.tensor(culled)
 
 
@@ -67,8 +75,11 @@ def test_fused_projection_matches_the_torch_twin_on_every_hard_case():
         torch.testing.assert_close(a[keep], b[keep], rtol=1e-9, atol=1e-9)
     assert float(fused.radii[2]) > 10 * W  # the 1e3-scale splat covers the whole image
     # gradients of the kept Gaussians agree; every gradient is finite
-    weights = [torch.randn(t.shape, generator=torch.Generator().manual_seed(i), dtype=F64) * keep.view(-1, *[1] * (t.dim() - 1))
-               for i, t in enumerate(splat_outputs(fused))]
+    weights = [
+        torch.randn(t.shape, generator=torch.Generator().manual_seed(i), dtype=F64)
+        * keep.view(-1, *[1] * (t.dim() - 1))
+        for i, t in enumerate(splat_outputs(fused))
+    ]
     loss_f = sum((w * t).sum() for w, t in zip(weights, splat_outputs(fused)))
     loss_t = sum((w * t).sum() for w, t in zip(weights, splat_outputs(twin)))
     params = [g["means"], g["quats"], g["log_scales"], g["sh_dc"], g["sh_rest"]]
@@ -89,13 +100,19 @@ def test_rendering_the_hard_set_gives_finite_images_and_gradients():
 
 
 def test_one_gaussian_renders_its_own_weight():
-    g = gaussians(torch.tensor([[0.0, 0, 2]], dtype=F64), torch.tensor([[1.0, 0, 0, 0]], dtype=F64),
-                  torch.tensor([0.05], dtype=F64), degree=0)
+    g = gaussians(
+        torch.tensor([[0.0, 0, 2]], dtype=F64),
+        torch.tensor([[1.0, 0, 0, 0]], dtype=F64),
+        torch.tensor([0.05], dtype=F64),
+        degree=0,
+    )
     s = project_splats(g, camera(), 0, NEAR)
     out = composite_rgbd(s, torch.zeros(3, dtype=F64))
     # at the pixel nearest the centre: alpha = sigmoid(2) exp(-d^T conic d / 2), d = (0.5, 0.5) px off
     a, b, c = s.conics[0].tolist()
-    alpha = torch.sigmoid(torch.tensor(2.0, dtype=F64)) * math.exp(-0.5 * (0.25 * a + 0.5 * b + 0.25 * c))
+    alpha = torch.sigmoid(torch.tensor(2.0, dtype=F64)) * math.exp(
+        -0.5 * (0.25 * a + 0.5 * b + 0.25 * c)
+    )
     torch.testing.assert_close(out["acc"][H // 2, W // 2], alpha)
     torch.testing.assert_close(out["rgb"][H // 2, W // 2], alpha * s.colors[0])
 
@@ -107,12 +124,15 @@ def test_a_million_gaussians_project_finitely_and_match_the_twin_on_a_sample():
     means = torch.randn(G, 3, generator=gen, dtype=F64) * torch.tensor([1.0, 1.0, 2.0], dtype=F64)
     quats = torch.randn(G, 4, generator=gen, dtype=F64)
     quats[::1000] = 0.0  # some degenerate quaternions among them
-    scales = torch.exp(torch.empty(G, dtype=F64).uniform_(math.log(1e-8), math.log(1e3), generator=gen))
+    scales = torch.exp(
+        torch.empty(G, dtype=F64).uniform_(math.log(1e-8), math.log(1e3), generator=gen)
+    )
     g = gaussians(means, quats, scales, degree=0)
     K, cfw = camera().K[0], torch.eye(4, dtype=F64)
     with torch.no_grad():
         m2d, conics, depths, radii, colors = project_fused(
-            g["means"], g["quats"], g["log_scales"], g["sh_dc"], g["sh_rest"], 0, K, cfw, W, H, NEAR)
+            g["means"], g["quats"], g["log_scales"], g["sh_dc"], g["sh_rest"], 0, K, cfw, W, H, NEAR
+        )
     assert all(torch.isfinite(t).all() for t in (m2d, conics, depths, radii, colors))
     kept = radii > 0
     assert 0.1 < float(kept.double().mean()) < 0.9  # behind / outside ones culled, others kept

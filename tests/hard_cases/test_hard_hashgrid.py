@@ -20,7 +20,11 @@ def python_hash(x: int, y: int, z: int) -> int:
 def vertices(n: int, count: int, seed: int) -> list[list[int]]:
     rng = random.Random(seed)
     vs = [[rng.randrange(0, n) for _ in range(3)] for _ in range(count)]
-    return vs + [[0, 0, 0], [n - 1, n - 1, n - 1], [n - 1, 0, n - 1]]  # box corners (x = 1 uses cell n-1)
+    return vs + [
+        [0, 0, 0],
+        [n - 1, n - 1, n - 1],
+        [n - 1, 0, n - 1],
+    ]  # box corners (x = 1 uses cell n-1)
 
 
 def row_table() -> torch.Tensor:
@@ -50,13 +54,25 @@ def test_faces_corners_and_outside_points_on_a_huge_level_are_finite_with_gradie
     n = 2**20
     layout = level_layout(2, n // 4, n, 2**18)  # two hashed levels at per-level offsets
     table = torch.randn(sum(layout["size"]), 2, dtype=torch.float64, requires_grad=True)
-    x = torch.tensor([[0.0, 0, 0], [1, 1, 1], [0.5, 0.25, 1.0], [3 / n, 1, 0], [-0.5, 2.0, 0.5],
-                      [1e-300, 1 - 1e-16, 0.5]], dtype=torch.float64, requires_grad=True)
+    x = torch.tensor(
+        [
+            [0.0, 0, 0],
+            [1, 1, 1],
+            [0.5, 0.25, 1.0],
+            [3 / n, 1, 0],
+            [-0.5, 2.0, 0.5],
+            [1e-300, 1 - 1e-16, 0.5],
+        ],
+        dtype=torch.float64,
+        requires_grad=True,
+    )
     out = hash_encode_torch(x, table, layout)
     assert torch.isfinite(out).all()
     g_x, g_t = torch.autograd.grad(out.sum(), [x, table])
     assert torch.isfinite(g_x).all() and torch.isfinite(g_t).all()
     # outside the box clamps to the face: same features as the clamped point
-    torch.testing.assert_close(out[4], hash_encode_torch(x[4:5].detach().clamp(0, 1), table, layout)[0])
+    torch.testing.assert_close(
+        out[4], hash_encode_torch(x[4:5].detach().clamp(0, 1), table, layout)[0]
+    )
     # the 8 corner weights of a point sum to 1 on each level: d(sum)/d(table) sums to N L F
     assert abs(float(g_t.sum()) - x.shape[0] * 2 * 2) < 1e-9

@@ -1,4 +1,4 @@
-"""Bad photo folders (issue #7). The validation layer (recon/sfm/photos.py) directly for the
+"""Bad photo folders. The validation layer (recon/sfm/photos.py) directly for the
 per-file cases not in tests/test_sfm_photos.py (a 1-pixel image, mixed sizes, textureless
 photos pass validation), and the real `recon sfm PHOTOS` for whole folders that cannot work:
 one error line, a non-zero exit, and no workspace left behind."""
@@ -14,7 +14,9 @@ from tests.hard_cases.conftest import assert_one_line_error
 
 def blocks(h: int, w: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    return np.kron(rng.integers(0, 256, size=(h // 8, w // 8, 3), dtype=np.uint8), np.ones((8, 8, 1), np.uint8))
+    return np.kron(
+        rng.integers(0, 256, size=(h // 8, w // 8, 3), dtype=np.uint8), np.ones((8, 8, 1), np.uint8)
+    )
 
 
 def test_one_pixel_image_is_skipped_with_its_size(tmp_path):
@@ -40,7 +42,12 @@ def test_mixed_sizes_and_textureless_photos_are_all_kept_with_their_own_sizes(tm
     Image.fromarray(np.full((96, 128, 3), 128, np.uint8)).save(src / "flat.png")
     photos = prepare_photos(src, tmp_path / "stage")
     assert photos.names == ["a.png", "b.png", "c.jpg", "flat.png"]
-    assert [(p.width, p.height) for p in photos.photos] == [(128, 96), (96, 128), (640, 480), (128, 96)]
+    assert [(p.width, p.height) for p in photos.photos] == [
+        (128, 96),
+        (96, 128),
+        (640, 480),
+        (128, 96),
+    ]
 
 
 def truncated_jpeg_and_a_dot(src):
@@ -60,17 +67,29 @@ def test_a_folder_of_one_photo_and_its_duplicate_is_refused(tmp_path):
     src.mkdir()
     Image.fromarray(blocks(96, 128, 5)).save(src / "a.png")
     (src / "b.png").write_bytes((src / "a.png").read_bytes())
-    with pytest.raises(PhotoError, match=r"only 1 usable image .*a\.png.*b\.png: duplicate of a\.png"):
+    with pytest.raises(
+        PhotoError, match=r"only 1 usable image .*a\.png.*b\.png: duplicate of a\.png"
+    ):
         prepare_photos(src, tmp_path / "stage")
 
 
 # Each CLI call costs ~10-20 s of imports on a loaded 2-core machine: two folders only (the
 # empty folder and a missing one are in tests/test_sfm_photos.py at the validation layer).
-@pytest.mark.parametrize("fill, message", [
-    (truncated_jpeg_and_a_dot, ("no usable images", "dot.png: too small (1x1", "full.jpg: unreadable",
-                                "notes.txt: not an image")),
-    (single_image, ("only 1 usable image", "only.png")),
-])
+@pytest.mark.parametrize(
+    "fill, message",
+    [
+        (
+            truncated_jpeg_and_a_dot,
+            (
+                "no usable images",
+                "dot.png: too small (1x1",
+                "full.jpg: unreadable",
+                "notes.txt: not an image",
+            ),
+        ),
+        (single_image, ("only 1 usable image", "only.png")),
+    ],
+)
 def test_unusable_photo_folders_fail_cleanly_through_the_cli(tmp_path, fill, message):
     src = tmp_path / "photos"
     src.mkdir()
@@ -78,4 +97,6 @@ def test_unusable_photo_folders_fail_cleanly_through_the_cli(tmp_path, fill, mes
     ws = tmp_path / "ws"
     proc = recon_cli("sfm", str(src), "-w", str(ws), check=False)
     assert_one_line_error(proc, *message)
-    assert not ws.exists() or not [p for p in ws.iterdir() if p.name != ".locks"], list(ws.rglob("*"))
+    assert not ws.exists() or not [p for p in ws.iterdir() if p.name != ".locks"], list(
+        ws.rglob("*")
+    )

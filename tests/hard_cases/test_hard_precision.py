@@ -1,4 +1,4 @@
-"""Reduced precision (issue #7: "bf16/fp16 inference where offered"). nerf runs its MLP
+"""Reduced precision (bf16/fp16 inference where offered). nerf runs its MLP
 matmuls in bf16 where the hardware has it (`precision`, tested against fp32 in test_nerf.py);
 the other models train and render in float32. The shared math accepts half inputs: the
 volume-rendering core and the torch hash encoding. Fed fp16/bf16 they must give the float32
@@ -21,14 +21,21 @@ def scene(R=512, S=96, seed=0):
     centre = 4.0 + 0.5 * torch.randn(R, 1, generator=g)
     peak = torch.logspace(-2, 2, R)[:, None]  # from almost empty to opaque
     mid = 0.5 * (t[:, 1:] + t[:, :-1])
-    sigmas = peak * torch.exp(-((mid - centre) / 0.3) ** 2)
+    sigmas = peak * torch.exp(-(((mid - centre) / 0.3) ** 2))
     rgbs = torch.rand(R, S, 3, generator=g)
     return sigmas, rgbs, t[:, :-1].contiguous(), t[:, 1:].contiguous()
 
 
 def max_error(low, ref) -> float:
-    assert low.rgb.dtype == low.acc.dtype and torch.isfinite(low.rgb).all() and torch.isfinite(low.acc).all()
-    return max(float((low.rgb.float() - ref.rgb).abs().max()), float((low.acc.float() - ref.acc).abs().max()))
+    assert (
+        low.rgb.dtype == low.acc.dtype
+        and torch.isfinite(low.rgb).all()
+        and torch.isfinite(low.acc).all()
+    )
+    return max(
+        float((low.rgb.float() - ref.rgb).abs().max()),
+        float((low.acc.float() - ref.acc).abs().max()),
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
@@ -37,7 +44,10 @@ def test_half_precision_field_outputs_render_the_float32_image(dtype):
     sig, rgb, t0, t1 = scene()
     bg = torch.ones(3)
     ref = volume_render(sig, rgb, t0, t1, background=bg)
-    assert max_error(volume_render(sig.to(dtype), rgb.to(dtype), t0, t1, background=bg), ref) < TOL[dtype]
+    assert (
+        max_error(volume_render(sig.to(dtype), rgb.to(dtype), t0, t1, background=bg), ref)
+        < TOL[dtype]
+    )
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

@@ -1,4 +1,4 @@
-"""Non-finite values in training (issue #7: "never a silent NaN model"). A NaN loss is caught at
+"""Non-finite values in training (never a silent NaN model). A NaN loss is caught at
 once and a real run rolls back (tests/test_train_loop.py). Here: an update that writes Inf/NaN
 into the PARAMETERS on a step whose loss was still finite - on the last step or right before a
 checkpoint nothing would read a loss again, so the poisoned model would be kept."""
@@ -32,7 +32,11 @@ class Blowup(Model):
 
     def render(self, camera):
         h, w = int(camera.height[0]), int(camera.width[0])
-        return {"rgb": self.color.detach().expand(h, w, 3), "depth": torch.ones(h, w), "acc": torch.ones(h, w)}
+        return {
+            "rgb": self.color.detach().expand(h, w, 3),
+            "depth": torch.ones(h, w),
+            "acc": torch.ones(h, w),
+        }
 
 
 def data():
@@ -46,14 +50,30 @@ def test_non_finite_parameters_are_never_kept(value, checkpoint_every_s):
     model, logs, saved = Blowup(bad_step=4, value=value), [], []
     cfg = TrainConfig(method="blowup", steps=5, checkpoint_every_s=checkpoint_every_s)
     with pytest.raises(FloatingPointError, match="non-finite"):
-        run_loop(model, data(), None, None, cfg, LoopState(), logs.append,
-                 lambda st: saved.append(dataclasses.replace(st)))
+        run_loop(
+            model,
+            data(),
+            None,
+            None,
+            cfg,
+            LoopState(),
+            logs.append,
+            lambda st: saved.append(dataclasses.replace(st)),
+        )
     assert all(st.step < 5 for st in saved)  # no checkpoint of the poisoned step
     assert [e["event"] for e in logs if "event" in e] == ["non_finite_parameters"]
 
 
 def test_finite_training_is_untouched():
     model, saved = Blowup(bad_step=-1, value=0.0), []
-    reason = run_loop(model, data(), None, None, TrainConfig(method="blowup", steps=5, checkpoint_every_s=0.0),
-                      LoopState(), lambda e: None, lambda st: saved.append(st.step))
+    reason = run_loop(
+        model,
+        data(),
+        None,
+        None,
+        TrainConfig(method="blowup", steps=5, checkpoint_every_s=0.0),
+        LoopState(),
+        lambda e: None,
+        lambda st: saved.append(st.step),
+    )
     assert reason == "steps" and saved == [1, 2, 3, 4, 5]

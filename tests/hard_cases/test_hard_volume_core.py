@@ -31,8 +31,13 @@ def test_8192_opaque_samples_underflow_to_zero_not_nan():
     S = 8192
     sig = torch.full((1, S), 1e4, dtype=torch.float64, requires_grad=True)
     t = torch.linspace(0, 1000, S + 1, dtype=torch.float64)
-    r = volume_render(sig, torch.rand(1, S, 3, dtype=torch.float64), t[:-1][None], t[1:][None],
-                      background=torch.ones(3, dtype=torch.float64))
+    r = volume_render(
+        sig,
+        torch.rand(1, S, 3, dtype=torch.float64),
+        t[:-1][None],
+        t[1:][None],
+        background=torch.ones(3, dtype=torch.float64),
+    )
     # the optical depth per sample is capped at 50 inside the sum: T_2 = e^-50, then smaller
     assert finite_grads(r.rgb.sum() + r.depth.sum(), sig)
     w, trans = r.weights.detach(), r.transmittance.detach()
@@ -71,12 +76,22 @@ def test_rays_that_miss_the_box_or_start_inside_it():
     d = torch.tensor([[0.0, 0, 1], [0, 0, 1], [1, 0, 0], [0, 0, 1], [0, 0, -1], [0, 0, 1]])
     near, far, hit = ray_aabb_intersect(o, d, aabb)
     assert hit.tolist() == [True, False, True, False, False, False]  # last: grazes an edge only
-    torch.testing.assert_close(torch.stack([near[:3], far[:3]]), torch.tensor([[4.0, 0, 0], [6, 0, 0.8]]))
+    torch.testing.assert_close(
+        torch.stack([near[:3], far[:3]]), torch.tensor([[4.0, 0, 0], [6, 0, 0.8]])
+    )
     assert torch.isfinite(near).all() and torch.isfinite(far).all()
     # a missed ray has zero-length intervals: background colour, zero opacity, no NaN
     s = torch.linspace(0, 1, 65)
-    t0, t1 = near[:, None] + (far - near)[:, None] * s[:-1], near[:, None] + (far - near)[:, None] * s[1:]
-    r = volume_render(torch.full(t0.shape, 50.0), torch.rand(*t0.shape, 3), t0, t1,
-                      background=torch.tensor([0.2, 0.4, 0.6]))
+    t0, t1 = (
+        near[:, None] + (far - near)[:, None] * s[:-1],
+        near[:, None] + (far - near)[:, None] * s[1:],
+    )
+    r = volume_render(
+        torch.full(t0.shape, 50.0),
+        torch.rand(*t0.shape, 3),
+        t0,
+        t1,
+        background=torch.tensor([0.2, 0.4, 0.6]),
+    )
     torch.testing.assert_close(r.rgb[~hit], torch.tensor([0.2, 0.4, 0.6]).expand(4, 3))
     assert r.acc[~hit].abs().max() == 0 and r.acc[hit].min() > 0.99

@@ -1,4 +1,4 @@
-"""Faults while writing a workspace (issue #7): a read-only workspace directory and a disk that
+"""Faults while writing a workspace: a read-only workspace directory and a disk that
 fills up mid-write. Each: one clear error line, a non-zero exit, the workspace byte-for-byte as
 it was and no temporary file left behind. (Missing/stale stage, newer schema, corrupt
 workspace.json and corrupt checkpoints are in tests/test_workspace.py, test_cli.py and
@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from recon.io.atomic import WriteError, atomic_dir
 from recon.train.checkpoint import save_checkpoint
-from recon.workspace.atomic import WriteError, atomic_dir
 from tests.conftest import REPO
 from tests.hard_cases.conftest import FAST_TRAIN, assert_one_line_error, snapshot
 
@@ -27,17 +27,32 @@ def run_recon(args, limit_bytes=None, read_only=None):
     private mount namespace (root ignores permission bits, so chmod would not do)."""
     cmd = [sys.executable, "-m", "recon.cli", *args]
     if read_only is not None and os.geteuid() == 0:
-        cmd = ["unshare", "-m", "sh", "-c",
-               'mount --bind "$1" "$1" && mount -o remount,ro,bind "$1" && shift && exec "$@"',
-               "sh", str(read_only), *cmd]
+        cmd = [
+            "unshare",
+            "-m",
+            "sh",
+            "-c",
+            'mount --bind "$1" "$1" && mount -o remount,ro,bind "$1" && shift && exec "$@"',
+            "sh",
+            str(read_only),
+            *cmd,
+        ]
 
     def limit():
         if limit_bytes is not None:
             resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
 
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=300, env=env, cwd=REPO,
-                          preexec_fn=limit)
+    return subprocess.run(
+        cmd,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        cwd=REPO,
+        preexec_fn=limit,
+    )
 
 
 def no_temporaries(ws: Path) -> bool:
@@ -57,15 +72,19 @@ def read_only_mounts_work(tmp: Path) -> bool:
 
 def test_read_only_workspace_is_refused_and_left_as_it_was(sphere_ws, tmp_path):
     if not read_only_mounts_work(tmp_path):
-        pytest.skip("running as root without mount privileges: no way to make a directory read-only")
+        pytest.skip(
+            "running as root without mount privileges: no way to make a directory read-only"
+        )
     before = snapshot(sphere_ws)
     if os.geteuid() != 0:
         for p in [sphere_ws, *sphere_ws.rglob("*")]:
             if p.is_dir():
                 p.chmod(0o555)
     try:
-        proc = run_recon(["train", "-w", str(sphere_ws), "--run", "ro", "--steps", "5", *FAST_TRAIN],
-                         read_only=sphere_ws)
+        proc = run_recon(
+            ["train", "-w", str(sphere_ws), "--run", "ro", "--steps", "5", *FAST_TRAIN],
+            read_only=sphere_ws,
+        )
     finally:
         for p in [sphere_ws, *sphere_ws.rglob("*")]:
             if p.is_dir():
@@ -78,8 +97,10 @@ def test_read_only_workspace_is_refused_and_left_as_it_was(sphere_ws, tmp_path):
 def test_disk_full_during_train_names_the_file_and_leaves_no_run(sphere_ws):
     """The first checkpoint (~2 kB+) cannot be written: no half file, no half run directory."""
     before = snapshot(sphere_ws)
-    proc = run_recon(["train", "-w", str(sphere_ws), "--run", "full", "--steps", "5", *FAST_TRAIN],
-                     limit_bytes=2000)
+    proc = run_recon(
+        ["train", "-w", str(sphere_ws), "--run", "full", "--steps", "5", *FAST_TRAIN],
+        limit_bytes=2000,
+    )
     assert_one_line_error(proc, "could not write", "step_00000000.pt", "File too large")
     assert snapshot(sphere_ws) == before and no_temporaries(sphere_ws)
     assert not (sphere_ws / "runs" / "full").exists()
@@ -88,7 +109,9 @@ def test_disk_full_during_train_names_the_file_and_leaves_no_run(sphere_ws):
 def test_disk_full_during_sfm_rerun_keeps_the_old_stage(sphere_ws):
     before = snapshot(sphere_ws)
     data = sphere_ws.parent / "sphere"
-    proc = run_recon(["sfm", "--from-transforms", str(data), "-w", str(sphere_ws)], limit_bytes=3000)
+    proc = run_recon(
+        ["sfm", "--from-transforms", str(data), "-w", str(sphere_ws)], limit_bytes=3000
+    )
     assert_one_line_error(proc, "could not write", "File too large")
     assert snapshot(sphere_ws) == before and no_temporaries(sphere_ws)
 
@@ -116,7 +139,12 @@ def test_enospc_inside_an_atomic_directory_keeps_the_old_one(tmp_path):
     d = tmp_path / "sfm"
     d.mkdir()
     (d / "cameras.json").write_text("old")
-    with pytest.raises(WriteError, match=r"could not write .*sfm: No space left"), atomic_dir(d) as tmp:
+    with (
+        pytest.raises(WriteError, match=r"could not write .*sfm: No space left"),
+        atomic_dir(d) as tmp,
+    ):
         (tmp / "points.ply").write_text("half")
         raise OSError(errno.ENOSPC, "No space left on device")
-    assert [p.name for p in tmp_path.iterdir()] == ["sfm"] and (d / "cameras.json").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["sfm"] and (
+        d / "cameras.json"
+    ).read_text() == "old"

@@ -95,3 +95,15 @@ def atomic_dir(path: Path):
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def save_torch(payload: dict, path: Path) -> None:
+    """torch.save, atomically. Serialised in memory first: torch's own file writer turns a full
+    disk into an opaque "unexpected pos" RuntimeError, a plain write gives the real OSError."""
+    import io
+
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    atomic_write_bytes(path, buffer.getbuffer())

@@ -1,4 +1,4 @@
-"""Gaussians in the normalized scene frame -> the original (world) frame, and the splat PLY.
+"""Gaussians in the normalized scene frame -> the original (world) frame.
 
 With x_scene = s R x_world + t: means_world = R^T (means - t) / s, log-scales - ln s,
 rotations R^T q, and the SH colour re-expressed for world directions: per degree l the real
@@ -15,7 +15,9 @@ from recon.cameras.conventions import quat_wxyz_from_rotation
 from recon.fields.sh import sh_basis
 
 
-def sh_rotation_blocks(R: np.ndarray, degree: int, n_dirs: int = 256, seed: int = 0) -> list[np.ndarray]:
+def sh_rotation_blocks(
+    R: np.ndarray, degree: int, n_dirs: int = 256, seed: int = 0
+) -> list[np.ndarray]:
     """[D_0, ..., D_degree] with Y_l(R d) = D_l Y_l(d) for unit d (each (2l+1, 2l+1))."""
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n_dirs, 3))
@@ -34,11 +36,20 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of (..., 4) wxyz quaternions."""
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
-def gaussians_to_world(g: dict[str, np.ndarray], scale: float, R: np.ndarray, t: np.ndarray) -> dict:
+def gaussians_to_world(
+    g: dict[str, np.ndarray], scale: float, R: np.ndarray, t: np.ndarray
+) -> dict:
     """g: means (G,3), quats (G,4) wxyz, log_scales (G,3), opacity_logits (G,), sh (G,K,3), all
     in the scene frame -> the same attributes in the world frame."""
     K = g["sh"].shape[1]
@@ -49,5 +60,10 @@ def gaussians_to_world(g: dict[str, np.ndarray], scale: float, R: np.ndarray, t:
         sh[:, sl, :] = np.einsum("ij,gic->gjc", D, g["sh"][:, sl, :])  # c' = D^T c
     q_rt = quat_wxyz_from_rotation(R.T)
     quats = g["quats"] / np.maximum(np.linalg.norm(g["quats"], axis=1, keepdims=True), 1e-12)
-    return {"means": (g["means"] - t) @ R / scale, "quats": quat_multiply(q_rt[None], quats),
-            "log_scales": g["log_scales"] - np.log(scale), "opacity_logits": g["opacity_logits"], "sh": sh}
+    return {
+        "means": (g["means"] - t) @ R / scale,
+        "quats": quat_multiply(q_rt[None], quats),
+        "log_scales": g["log_scales"] - np.log(scale),
+        "opacity_logits": g["opacity_logits"],
+        "sh": sh,
+    }

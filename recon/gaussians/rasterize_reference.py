@@ -13,13 +13,9 @@ import torch
 from torch import Tensor
 
 from recon.cameras.rays import pixel_centers
-from recon.gaussians.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, tile_bounds
-
-
-def exclusive_cumprod(x: Tensor) -> Tensor:
-    """[1, x_0, x_0 x_1, ...] along the last dim.  (..., N) -> (..., N)."""
-    return torch.cumprod(torch.cat([torch.ones_like(x[..., :1]), x[..., :-1]], -1), -1)
+from recon.volrend.volrend import alpha_compositing
 
 
 def splat_alphas(means2d: Tensor, conics: Tensor, opacities: Tensor, pixels: Tensor) -> Tensor:
@@ -36,18 +32,22 @@ def splat_alphas(means2d: Tensor, conics: Tensor, opacities: Tensor, pixels: Ten
 
 
 def composite_alphas(alpha: Tensor, features: Tensor) -> tuple[Tensor, Tensor]:
-    """Front-to-back compositing with early termination.  alpha (P, G) depth-sorted,
-    features (G, D) -> F (P, D), T_final (P,)."""
-    T = exclusive_cumprod(1 - alpha)
-    stop = (T * (1 - alpha) < T_MIN) & (alpha > 0)
-    alpha = torch.where(torch.cumsum(stop.int(), -1) > 0, torch.zeros_like(alpha), alpha)
-    T = exclusive_cumprod(1 - alpha)
-    return (T * alpha) @ features, torch.prod(1 - alpha, -1)
+    """Front-to-back compositing with early termination (`volrend.alpha_compositing`, the one
+    compositing primitive).  alpha (P, G) depth-sorted, features (G, D) -> F (P, D), T_final (P,)."""
+    weights, alpha = alpha_compositing(alpha, t_min=T_MIN)
+    return weights @ features, torch.exp(torch.log1p(-alpha).sum(-1))
 
 
-def rasterize_features_ref(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor,
-                           radii: Tensor, depths: Tensor, width: int, height: int,
-                           ) -> tuple[Tensor, Tensor]:
+def rasterize_features_reference(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
     """Dense twin of `rasterize.rasterize_features`: same arguments, same outputs
     image (H, W, D), transmittance (H, W)."""
     order = torch.argsort(depths.detach(), stable=True)
@@ -55,8 +55,12 @@ def rasterize_features_ref(means2d: Tensor, conics: Tensor, opacities: Tensor, f
     bounds = tile_bounds(means2d, radii, width, height)[order]
     pixels = pixel_centers(width, height, device=means2d.device, dtype=means2d.dtype).reshape(-1, 2)
     tile_xy = torch.div(pixels.detach(), TILE, rounding_mode="floor").long()
-    listed = ((tile_xy[:, None, 0] >= bounds[:, 0]) & (tile_xy[:, None, 0] < bounds[:, 2])
-              & (tile_xy[:, None, 1] >= bounds[:, 1]) & (tile_xy[:, None, 1] < bounds[:, 3]))
+    listed = (
+        (tile_xy[:, None, 0] >= bounds[:, 0])
+        & (tile_xy[:, None, 0] < bounds[:, 2])
+        & (tile_xy[:, None, 1] >= bounds[:, 1])
+        & (tile_xy[:, None, 1] < bounds[:, 3])
+    )
     alpha = splat_alphas(means2d[order], conics[order], opacities[order], pixels)
     alpha = torch.where(listed, alpha, torch.zeros_like(alpha))
     image, T = composite_alphas(alpha, features[order])

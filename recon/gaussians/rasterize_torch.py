@@ -1,5 +1,5 @@
 """Vectorised pure-torch tile rasterizer for non-CPU devices: the same semantics as the dense
-twin (`rasterize_ref`) but over the (tile, depth)-sorted intersection list, so memory is
+twin (`rasterize_reference`) but over the (tile, depth)-sorted intersection list, so memory is
 O(intersections x 256) instead of O(H W G). Autograd does the backward.
 
 Every intersection (splat i listed in tile t) is evaluated at the 256 pixels of t. Within a
@@ -11,21 +11,12 @@ T recomputed, as in the reference.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from recon.gaussians.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
 from recon.gaussians.tiles import TILE, bin_gaussians_sorted, tile_bounds, tile_grid
-
-
-def segmented_exclusive_cumsum(x: Tensor, segment: Tensor, starts: Tensor) -> Tensor:
-    """sum_{j < i, j in i's segment} x_j along dim 0. x (N, ...), segment (N,) id of each row,
-    starts (S + 1,) first row of each segment. -> (N, ...)."""
-    inclusive = torch.cumsum(x, 0)
-    exclusive = inclusive - x
-    return exclusive - exclusive[starts[segment]]
+from recon.volrend.volrend import alpha_compositing
 
 
 def _pixel_grid(tile_ids: Tensor, width: int, height: int, dtype) -> tuple[Tensor, Tensor, Tensor]:
@@ -46,30 +37,36 @@ def _alphas(means2d, conics, opacities, gid, px, py, on_image) -> Tensor:
     return torch.where(keep, alpha, torch.zeros_like(alpha))
 
 
-def rasterize_features_packed(means2d: Tensor, conics: Tensor, opacities: Tensor,
-                              features: Tensor, radii: Tensor, depths: Tensor, width: int,
-                              height: int) -> tuple[Tensor, Tensor]:
+def rasterize_features_torch(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
     """Same arguments and outputs as `rasterize.rasterize_features`: image (H, W, D),
     transmittance (H, W)."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles, D = tiles_x * tiles_y, features.shape[1]
-    starts, gid = bin_gaussians_sorted(tile_bounds(means2d, radii, width, height), depths,
-                                       width, height)
+    starts, gid = bin_gaussians_sorted(
+        tile_bounds(means2d, radii, width, height), depths, width, height
+    )
     tile_ids = torch.repeat_interleave(torch.arange(n_tiles, device=gid.device), starts.diff())
     px, py, on_image = _pixel_grid(tile_ids, width, height, means2d.dtype)
     alpha = _alphas(means2d, conics, opacities, gid, px, py, on_image)
-    log_t = segmented_exclusive_cumsum(torch.log1p(-alpha.double()), tile_ids, starts)
-    stop = (log_t + torch.log1p(-alpha.double()) < math.log(T_MIN)) & (alpha > 0)
-    stopped = segmented_exclusive_cumsum(stop.long(), tile_ids, starts) + stop.long() > 0
-    alpha = torch.where(stopped, torch.zeros_like(alpha), alpha)
+    # each of a tile's 256 pixels composites the tile's depth-sorted list: packed along dim 0
+    weights, alpha = alpha_compositing(alpha, tile_ids, t_min=T_MIN)
     log1m = torch.log1p(-alpha.double())
-    T = torch.exp(segmented_exclusive_cumsum(log1m, tile_ids, starts)).to(alpha.dtype)
-    weighted = (T * alpha)[..., None] * features[gid, None, :]  # (N, 256, D)
+    weighted = weights[..., None] * features[gid, None, :]  # (N, 256, D)
     image = features.new_zeros(n_tiles, TILE * TILE, D).index_add(0, tile_ids, weighted)
     log_final = log1m.new_zeros(n_tiles, TILE * TILE).index_add(0, tile_ids, log1m)
     T_final = torch.exp(log_final).to(alpha.dtype)
-    return _untile(image, tiles_x, tiles_y, width, height), _untile(T_final[..., None], tiles_x,
-                                                                   tiles_y, width, height)[..., 0]
+    return _untile(image, tiles_x, tiles_y, width, height), _untile(
+        T_final[..., None], tiles_x, tiles_y, width, height
+    )[..., 0]
 
 
 def _untile(x: Tensor, tiles_x: int, tiles_y: int, width: int, height: int) -> Tensor:

@@ -1,5 +1,5 @@
-"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023; seed, "3D Gaussian
-Splatting"), its flat config and presets, registered at import.
+"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023, "3D
+Gaussian Splatting for Real-Time Radiance Field Rendering"), its flat config and presets, registered at import.
 
 A training step renders one full training view (shuffled epoch order), takes
 loss = (1 - lambda) L1 + lambda (1 - SSIM), runs fused Adam with the reference's per-attribute
@@ -23,9 +23,9 @@ of a pixel) and 5,400 steps end at 31.5 dB against 32.8 dB without; fox gains no
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.profiler import record_function
@@ -42,20 +42,31 @@ from recon.gaussians.init import (
     sample_in_shell,
     uses_random_init,
 )
-from recon.gaussians.optim import make_adam, set_lr
+from recon.gaussians.optim import make_adam
 from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.render import ProjectedSplats, composite_rgb, composite_rgbd, project_splats
 from recon.gaussians.ssim import ssim
+from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.schedules import exp_decay_lr, set_lr
+from recon.options import opt
+from recon.volrend import surface_depth
 
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
 # measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
 # until 0.7 of the run with the means lr decayed over the whole run beats the lego-tuned steps
 # (30.66 against 29.38 dB) and shrinking everything by the same factor (30.51 dB, far fewer
 # Gaussians, LPIPS 0.160 against 0.140).
-SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0, "densify_stop": 0.7, "opacity_reset_interval": 0.35,
-                      "sh_degree_interval": 0.2}
+SCHEDULE_FRACTIONS = {
+    "lr_decay_steps": 1.0,
+    "densify_stop": 0.7,
+    "opacity_reset_interval": 0.35,
+    "sh_degree_interval": 0.2,
+}
+
+
+_DENSIFY = densify.DensifyStrategy  # the densification defaults have one source: the strategy
 
 
 @dataclass(frozen=True)
@@ -63,56 +74,96 @@ class GaussiansConfig:
     """3D Gaussian splatting. Defaults are the reference's (the "paper" preset); "fast" rescales
     the schedules to a CPU run of a few thousand steps."""
 
-    init: str = "sfm"  # sfm (SceneInfo.points; random if there are none) | random
-    init_points: int = 100_000  # random initial Gaussians in the scene box
-    init_from_images: bool = False  # random init: sample the visual hull, colours from images
-    init_far_fraction: float = 0.5  # unbounded scenes: share of image init points in a far shell
-    init_far_factor: float = 3.0  # the far shell's outer / inner radius (inner: beyond the cameras)
-    init_ply: str = ""  # start from this INRIA splat PLY (world units, as `recon export` writes)
-    init_opacity: float = 0.1  # initial opacity of every Gaussian
-    sh_degree: int = 3  # largest SH degree of the colours
-    sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
-    near_plane: float = 0.01  # Gaussians with camera z <= this are culled
-    ssim_weight: float = 0.2  # lambda in (1 - lambda) L1 + lambda (1 - SSIM)
-    lr_means: float = 0.00016  # means lr at step 0, times the camera extent
-    lr_means_final: float = 0.0000016  # means lr after lr_decay_steps, times the camera extent
-    lr_decay_steps: int = 30_000  # steps of the exponential decay of the means lr
-    lr_sh_dc: float = 0.0025  # lr of the degree-0 SH coefficients
-    lr_sh_rest: float = 0.000125  # lr of the degree 1-3 SH coefficients (dc / 20)
-    lr_opacity: float = 0.05  # lr of the opacity logits
-    lr_scales: float = 0.005  # lr of the log-scales
-    lr_quats: float = 0.001  # lr of the quaternions
-    densify_grad_threshold: float = 0.0002  # mean NDC 2D-mean gradient that triggers densify
-    densify_dense_fraction: float = 0.01  # clone below this x extent (max scale), split above
-    densify_start: int = 500  # first densification step
-    densify_stop: int = 15_000  # no densification or opacity reset from this step
-    densify_interval: int = 100  # steps between densifications
-    opacity_reset_interval: int = 3000  # steps between opacity resets
-    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
-    prune_screen_fraction: float = 0.15  # prune if screen radius > this x image size (after a reset)
-    prune_world_fraction: float = 0.1  # prune if max scale > this x extent (after a reset)
-    max_gaussians: int = 3_000_000  # densification stops growing the count here
-    clone_opacity_correction: bool = False  # a clone and its original share the opacity (1 - sqrt(1 - o))
-    schedule_steps: int = 0  # the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)
-    c2f_factor: int = 1  # coarse-to-fine: the first steps fit targets downscaled by this (1 = off)
-    c2f_interval: int = 250  # coarse-to-fine: steps at each coarse level (the factor halves after each)
-    appearance: str = "off"  # per-image affine colour correction of the training photos: on | off | auto (on for unbounded captures)
-    lr_appearance: float = 0.001  # lr of the appearance corrections
-    pose_refine: bool = False  # learn an SE(3) correction of each training camera's pose
-    lr_pose: float = 0.0003  # lr of the pose corrections (radians and scene units) at pose_refine_start
-    lr_pose_final: float = 0.000003  # pose lr at lr_decay_steps (log-linear decay over its second half)
-    pose_refine_start: int = 0  # first step that moves the poses
-    seed: int = 0  # seeds random init, view order and split sampling
-    default_steps: int = 30_000  # steps when `recon train` is given no stopping rule
+    init: str = opt("sfm", "sfm (SceneInfo.points; random if there are none) | random")
+    init_points: int = opt(100_000, "random initial Gaussians in the scene box")
+    init_from_images: bool = opt(False, "random init: sample the visual hull, colours from images")
+    init_far_fraction: float = opt(
+        0.5, "unbounded scenes: share of image init points in a far shell"
+    )
+    init_far_factor: float = opt(
+        3.0, "the far shell's outer / inner radius (inner: beyond the cameras)"
+    )
+    init_ply: str = opt(
+        "", "start from this INRIA splat PLY (world units, as `recon export` writes)"
+    )
+    init_opacity: float = opt(0.1, "initial opacity of every Gaussian")
+    sh_degree: int = opt(3, "largest SH degree of the colours")
+    sh_degree_interval: int = opt(1000, "raise the active SH degree by one every this many steps")
+    near_plane: float = opt(0.01, "Gaussians with camera z <= this are culled")
+    ssim_weight: float = opt(0.2, "lambda in (1 - lambda) L1 + lambda (1 - SSIM)")
+    lr_means: float = opt(0.00016, "means lr at step 0, times the camera extent")
+    lr_means_final: float = opt(0.0000016, "means lr after lr_decay_steps, times the camera extent")
+    lr_decay_steps: int = opt(30_000, "steps of the exponential decay of the means lr")
+    lr_sh_dc: float = opt(0.0025, "lr of the degree-0 SH coefficients")
+    lr_sh_rest: float = opt(0.000125, "lr of the degree 1-3 SH coefficients (dc / 20)")
+    lr_opacity: float = opt(0.05, "lr of the opacity logits")
+    lr_scales: float = opt(0.005, "lr of the log-scales")
+    lr_quats: float = opt(0.001, "lr of the quaternions")
+    densify_grad_threshold: float = opt(
+        _DENSIFY.grad_threshold, "mean NDC 2D-mean gradient that triggers densify"
+    )
+    densify_dense_fraction: float = opt(
+        _DENSIFY.dense_fraction, "clone below this x extent (max scale), split above"
+    )
+    densify_start: int = opt(_DENSIFY.start, "first densification step")
+    densify_stop: int = opt(_DENSIFY.stop, "no densification or opacity reset from this step")
+    densify_interval: int = opt(_DENSIFY.interval, "steps between densifications")
+    opacity_reset_interval: int = opt(_DENSIFY.reset_interval, "steps between opacity resets")
+    prune_opacity: float = opt(_DENSIFY.prune_opacity, "prune Gaussians less opaque than this")
+    prune_screen_fraction: float = opt(
+        _DENSIFY.prune_screen_fraction, "prune if screen radius > this x image size (after a reset)"
+    )
+    prune_world_fraction: float = opt(
+        _DENSIFY.prune_world_fraction, "prune if max scale > this x extent (after a reset)"
+    )
+    max_gaussians: int = opt(_DENSIFY.max_gaussians, "densification stops growing the count here")
+    clone_opacity_correction: bool = opt(
+        _DENSIFY.clone_opacity_correction,
+        "a clone and its original share the opacity (1 - sqrt(1 - o))",
+    )
+    schedule_steps: int = opt(
+        0,
+        "the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)",
+    )
+    c2f_factor: int = opt(
+        1, "coarse-to-fine: the first steps fit targets downscaled by this (1 = off)"
+    )
+    c2f_interval: int = opt(
+        250, "coarse-to-fine: steps at each coarse level (the factor halves after each)"
+    )
+    appearance: str = opt(
+        "off",
+        "per-image affine colour correction of the training photos: on | off | auto (on for unbounded captures)",
+    )
+    lr_appearance: float = opt(0.001, "lr of the appearance corrections")
+    pose_refine: bool = opt(False, "learn an SE(3) correction of each training camera's pose")
+    lr_pose: float = opt(
+        0.0003, "lr of the pose corrections (radians and scene units) at pose_refine_start"
+    )
+    lr_pose_final: float = opt(
+        0.000003, "pose lr at lr_decay_steps (log-linear decay over its second half)"
+    )
+    pose_refine_start: int = opt(0, "first step that moves the poses")
+    seed: int = opt(0, "seeds random init, view order and split sampling")
+    default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
 
 
 PRESETS = {
     "paper": {},
     "fast": {
-        "init_points": 4000, "init_from_images": True, "sh_degree_interval": 500, "lr_decay_steps": 5000,
-        "densify_start": 100, "densify_stop": 2000, "densify_interval": 100,
-        "opacity_reset_interval": 1000, "max_gaussians": 200_000, "default_steps": 3000,
-        "clone_opacity_correction": True, "c2f_factor": 4, "appearance": "auto",
+        "init_points": 4000,
+        "init_from_images": True,
+        "sh_degree_interval": 500,
+        "lr_decay_steps": 5000,
+        "densify_start": 100,
+        "densify_stop": 2000,
+        "densify_interval": 100,
+        "opacity_reset_interval": 1000,
+        "max_gaussians": 200_000,
+        "default_steps": 3000,
+        "clone_opacity_correction": True,
+        "c2f_factor": 4,
+        "appearance": "auto",
     },
 }
 
@@ -127,8 +178,10 @@ def fit_schedules(config: GaussiansConfig) -> GaussiansConfig:
     sh_degree_interval 320."""
     if config.schedule_steps <= 0:
         return config
-    fitted = {name: min(getattr(config, name), max(1, round(fraction * config.schedule_steps)))
-              for name, fraction in SCHEDULE_FRACTIONS.items()}
+    fitted = {
+        name: min(getattr(config, name), max(1, round(fraction * config.schedule_steps)))
+        for name, fraction in SCHEDULE_FRACTIONS.items()
+    }
     return replace(config, **fitted)
 
 
@@ -153,8 +206,9 @@ def camera_extent(cameras: Cameras) -> float:
 
 def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
     """Log-linear decay lr_means -> lr_means_final over lr_decay_steps, times the extent."""
-    t = min(max(step / max(config.lr_decay_steps, 1), 0.0), 1.0)
-    return extent * math.exp((1 - t) * math.log(config.lr_means) + t * math.log(config.lr_means_final))
+    return extent * exp_decay_lr(
+        step, config.lr_means, config.lr_means_final, config.lr_decay_steps
+    )
 
 
 def pose_lr(config: GaussiansConfig, step: int) -> float:
@@ -162,9 +216,8 @@ def pose_lr(config: GaussiansConfig, step: int) -> float:
     decay to lr_pose_final at its end: a camera is visited once per pass over the training
     views and needs tens of updates to come back, so the decay waits; then it stops the
     corrections' jitter."""
-    begin = 0.5 * (config.pose_refine_start + config.lr_decay_steps)
-    t = min(max((step - begin) / max(config.lr_decay_steps - begin, 1), 0.0), 1.0)
-    return math.exp((1 - t) * math.log(config.lr_pose) + t * math.log(config.lr_pose_final))
+    begin = (config.pose_refine_start + config.lr_decay_steps) // 2
+    return exp_decay_lr(step, config.lr_pose, config.lr_pose_final, config.lr_decay_steps, begin)
 
 
 def uses_appearance(config: GaussiansConfig, scene: SceneInfo) -> bool:
@@ -184,17 +237,25 @@ def view_for_step(step: int, n_views: int, seed: int) -> int:
 
 def densify_strategy(config: GaussiansConfig) -> densify.DensifyStrategy:
     return densify.DensifyStrategy(
-        grad_threshold=config.densify_grad_threshold, dense_fraction=config.densify_dense_fraction,
-        prune_opacity=config.prune_opacity, prune_screen_fraction=config.prune_screen_fraction,
-        prune_world_fraction=config.prune_world_fraction, start=config.densify_start,
-        stop=config.densify_stop, interval=config.densify_interval,
-        reset_interval=config.opacity_reset_interval, max_gaussians=config.max_gaussians,
-        clone_opacity_correction=config.clone_opacity_correction)
+        grad_threshold=config.densify_grad_threshold,
+        dense_fraction=config.densify_dense_fraction,
+        prune_opacity=config.prune_opacity,
+        prune_screen_fraction=config.prune_screen_fraction,
+        prune_world_fraction=config.prune_world_fraction,
+        start=config.densify_start,
+        stop=config.densify_stop,
+        interval=config.densify_interval,
+        reset_interval=config.opacity_reset_interval,
+        max_gaussians=config.max_gaussians,
+        clone_opacity_correction=config.clone_opacity_correction,
+    )
 
 
 class GaussianModel(Model):
     """G Gaussians as an `nn.ParameterDict` of (G, ...) tensors: means, quats (w, x, y, z),
     log_scales, opacity_logits, sh_dc (G, 1, 3), sh_rest (G, (degree+1)^2 - 1, 3)."""
+
+    exports_splats = True
 
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()
@@ -210,28 +271,40 @@ class GaussianModel(Model):
             if scene.scene_from_world is None:
                 raise ValueError("init_ply needs the scene's scene_from_world similarity")
             start, self._min_sh_degree = gaussians_from_splat_ply(
-                config.init_ply, scene.scene_from_world, config.sh_degree)
+                config.init_ply, scene.scene_from_world, config.sh_degree
+            )
             self._random_init = False
             self.active_sh_degree.fill_(self._min_sh_degree)
         else:
             start = initial_gaussians(config, scene)
             self._random_init = uses_random_init(config, scene)
         self.params = nn.ParameterDict({k: nn.Parameter(v) for k, v in start.items()})
-        if config.pose_refine and not (config.lr_pose > 0 and config.lr_pose_final > 0
-                                       and config.pose_refine_start >= 0):
-            raise ValueError("pose_refine needs lr_pose > 0, lr_pose_final > 0 and "
-                             "pose_refine_start >= 0")
+        if config.pose_refine and not (
+            config.lr_pose > 0 and config.lr_pose_final > 0 and config.pose_refine_start >= 0
+        ):
+            raise ValueError(
+                "pose_refine needs lr_pose > 0, lr_pose_final > 0 and pose_refine_start >= 0"
+            )
         # (C, 6) twists of the training cameras, sized at the first step (`_train_camera`)
         self.pose_correction = PoseCorrection(0) if config.pose_refine else None
         # (C, 3, 4) colour corrections of the training images, sized at the first step too
-        self.appearance = (AppearanceCorrection(0, config.lr_appearance)
-                           if uses_appearance(config, scene) else None)
+        self.appearance = (
+            AppearanceCorrection(0, config.lr_appearance)
+            if uses_appearance(config, scene)
+            else None
+        )
         self._reset_training_state()
 
     def _reset_training_state(self) -> None:
         c = self.config
-        lrs = {"means": c.lr_means, "quats": c.lr_quats, "log_scales": c.lr_scales,
-               "opacity_logits": c.lr_opacity, "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest}
+        lrs = {
+            "means": c.lr_means,
+            "quats": c.lr_quats,
+            "log_scales": c.lr_scales,
+            "opacity_logits": c.lr_opacity,
+            "sh_dc": c.lr_sh_dc,
+            "sh_rest": c.lr_sh_rest,
+        }
         self.optimizer = make_adam(self.params, lrs)
         self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
         self._reset_pose_optimizer()
@@ -250,17 +323,31 @@ class GaussianModel(Model):
         """The attribute tensors `render.project_splats` takes."""
         return dict(self.params.items())
 
+    def splats(self) -> dict:
+        p = {k: v.detach().cpu().numpy() for k, v in self.params.items()}
+        return {
+            "means": p["means"],
+            "quats": p["quats"],
+            "log_scales": p["log_scales"],
+            "opacity_logits": p["opacity_logits"].reshape(-1),
+            "sh": np.concatenate([p["sh_dc"], p["sh_rest"]], axis=1),
+        }
+
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         """One view, full resolution. The `3dgs.*` profiler labels split the step's time (see
-        `bench.py`)."""
+        pipelines/bench_gaussians.py)."""
         c = self.config
         extent = self._prepare_step(data, step)
         view = view_for_step(step, len(data), c.seed)
         short_side = min(data.images.shape[1:3])
         level = data.downsampled(c2f_factor(step, c.c2f_factor, c.c2f_interval, short_side))
         with record_function("3dgs.project"):
-            splats = project_splats(self.gaussians(), self._train_camera(level, view, step),
-                                    int(self.active_sh_degree), c.near_plane)
+            splats = project_splats(
+                self.gaussians(),
+                self._train_camera(level, view, step),
+                int(self.active_sh_degree),
+                c.near_plane,
+            )
         splats.means2d.retain_grad()
         with record_function("3dgs.rasterize"):
             rgb, _ = composite_rgb(splats, self.background)
@@ -279,8 +366,11 @@ class GaussianModel(Model):
             self._densify(splats, step, extent)
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
-        return {"loss": loss.item(), "psnr": -10 * math.log10(max(mse, 1e-10)),
-                "num_gaussians": float(self.num_gaussians)}
+        return {
+            "loss": loss.item(),
+            "psnr": training_psnr(mse),
+            "num_gaussians": float(self.num_gaussians),
+        }
 
     def _train_camera(self, data: TrainData, view: int, step: int) -> Cameras:
         """Training view `view`'s camera; with pose_refine, corrected by its learnt twist (and
@@ -292,8 +382,10 @@ class GaussianModel(Model):
             self.pose_correction.reset(data.cameras, self._aabb.mean(0))
             self._reset_pose_optimizer()
         elif count != len(data):
-            raise ValueError(f"the model holds pose corrections of {count} training cameras "
-                             f"but is trained on {len(data)}")
+            raise ValueError(
+                f"the model holds pose corrections of {count} training cameras "
+                f"but is trained on {len(data)}"
+            )
         elif self.pose_correction.gauge is None:  # loaded from a checkpoint
             self.pose_correction.set_gauge(data.cameras)
         if step < self.config.pose_refine_start:
@@ -308,8 +400,10 @@ class GaussianModel(Model):
         if len(self.appearance.deltas) == 0:  # first step: an identity per training image
             self.appearance.reset(cameras)
         elif len(self.appearance.deltas) != len(cameras):
-            raise ValueError(f"the model holds colour corrections of {len(self.appearance.deltas)} "
-                             f"training images but is trained on {len(cameras)}")
+            raise ValueError(
+                f"the model holds colour corrections of {len(self.appearance.deltas)} "
+                f"training images but is trained on {len(cameras)}"
+            )
         return self.appearance(rgb, view)
 
     def _appearance_step(self) -> None:
@@ -319,7 +413,7 @@ class GaussianModel(Model):
 
     def _pose_step(self, step: int) -> None:
         if self.pose_optimizer is not None and step >= self.config.pose_refine_start:
-            set_lr(self.pose_optimizer, "pose", pose_lr(self.config, step))
+            set_lr(self.pose_optimizer, pose_lr(self.config, step), "pose")
             self.pose_optimizer.step()
             self.pose_optimizer.zero_grad(set_to_none=True)
             self.pose_correction.remove_gauge()
@@ -330,8 +424,9 @@ class GaussianModel(Model):
         if self.pose_correction is None or len(self.pose_correction.twists) == 0:
             return cameras
         with torch.no_grad():
-            return self.pose_correction(cameras.to(self.pose_correction.twists.device),
-                                        list(range(len(cameras))))
+            return self.pose_correction(
+                cameras.to(self.pose_correction.twists.device), list(range(len(cameras)))
+            )
 
     def _prepare_step(self, data: TrainData, step: int) -> float:
         """Scene extent (from the training cameras, once), SH degree and means lr for `step`."""
@@ -346,7 +441,7 @@ class GaussianModel(Model):
             self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
         scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
         self.active_sh_degree.fill_(max(scheduled, self._min_sh_degree))
-        set_lr(self.optimizer, "means", means_lr(c, step, extent))
+        set_lr(self.optimizer, means_lr(c, step, extent), "means")
         return extent
 
     @torch.no_grad()
@@ -358,12 +453,19 @@ class GaussianModel(Model):
         the background, which the scene box leaves out, starts with Gaussians too."""
         c = self.config
         n_far = int(c.init_points * c.init_far_fraction) if self._unbounded else 0
-        points, colors = sample_in_hull(self._aabb, c.init_points - n_far, data.images,
-                                        data.cameras, self.background, c.seed)
+        points, colors = sample_in_hull(
+            self._aabb, c.init_points - n_far, data.images, data.cameras, self.background, c.seed
+        )
         if n_far:
-            far, far_colors = sample_in_shell(self._aabb.mean(0), data.cameras.centers,
-                                              c.init_far_factor, n_far, data.images,
-                                              data.cameras, c.seed + 1)
+            far, far_colors = sample_in_shell(
+                self._aabb.mean(0),
+                data.cameras.centers,
+                c.init_far_factor,
+                n_far,
+                data.images,
+                data.cameras,
+                c.seed + 1,
+            )
             points, colors = torch.cat([points, far]), torch.cat([colors, far_colors])
         if len(points) < 4:  # nothing but background: keep the random start
             return
@@ -375,12 +477,14 @@ class GaussianModel(Model):
 
     def _densify(self, splats: ProjectedSplats, step: int, extent: float) -> None:
         if step + 1 < self.strategy.stop:
-            densify.accumulate(self.densify_state, splats.means2d.grad, splats.radii,
-                               splats.width, splats.height)
+            densify.accumulate(
+                self.densify_state, splats.means2d.grad, splats.radii, splats.width, splats.height
+            )
         gen = torch.Generator(device=self.params["means"].device)
         gen.manual_seed(self.config.seed + 7919 * step)
-        self.densify_state = densify.post_step(self.strategy, self.params, self.optimizer,
-                                               self.densify_state, step, extent, gen)
+        self.densify_state = densify.post_step(
+            self.strategy, self.params, self.optimizer, self.densify_state, step, extent, gen
+        )
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -388,19 +492,22 @@ class GaussianModel(Model):
         The camera is used as given: no pose correction (see `train_cameras`). With appearance,
         rgb takes the colour correction of the nearest training photos (`models.appearance`)."""
         degree = int(self.active_sh_degree)
-        splats = project_splats(self.gaussians(), camera.to(self.params["means"].device), degree,
-                                self.config.near_plane)
+        splats = project_splats(
+            self.gaussians(), camera.to(self.params["means"].device), degree, self.config.near_plane
+        )
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
-        depth = torch.where(acc > 0, out["depth"] / acc.clamp_min(1e-10), torch.zeros_like(acc))
+        depth = surface_depth(out["depth"], acc)
         rgb = out["rgb"]
         if self.appearance is not None and len(self.appearance.deltas):
             rgb = self.appearance.for_camera(rgb, camera)  # nearest training photos' exposure
         return {"rgb": rgb, "depth": depth, "acc": acc}
 
     def training_state(self) -> dict:
-        state = {"optimizer": self.optimizer.state_dict(),
-                 "densify": {k: v.clone() for k, v in self.densify_state.items()}}
+        state = {
+            "optimizer": self.optimizer.state_dict(),
+            "densify": {k: v.clone() for k, v in self.densify_state.items()},
+        }
         if self.pose_optimizer is not None:
             state["pose_optimizer"] = self.pose_optimizer.state_dict()
         if self.appearance is not None:
@@ -413,8 +520,9 @@ class GaussianModel(Model):
             self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         if self.appearance is not None:
             self.appearance.optimizer.load_state_dict(state["appearance_optimizer"])
-        self.densify_state = {k: v.to(self.params["means"].device)
-                              for k, v in state["densify"].items()}
+        self.densify_state = {
+            k: v.to(self.params["means"].device) for k, v in state["densify"].items()
+        }
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Resize the Gaussian tensors to the saved count first (densification changes it), then
@@ -437,17 +545,31 @@ class GaussianModel(Model):
     def stats(self) -> dict[str, float]:
         """Size, and with pose_refine how far the poses moved (`PoseCorrection.stats`)."""
         pose = self.pose_correction.stats() if self.pose_correction is not None else {}
-        colour = self.appearance.spread() if self.appearance is not None and len(self.appearance.deltas) else {}
-        return {"parameters": float(sum(p.numel() for p in self.params.values())),
-                "gaussians": float(self.num_gaussians), **pose, **colour}
+        colour = (
+            self.appearance.spread()
+            if self.appearance is not None and len(self.appearance.deltas)
+            else {}
+        )
+        return {
+            "parameters": float(sum(p.numel() for p in self.params.values())),
+            "gaussians": float(self.num_gaussians),
+            **pose,
+            **colour,
+        }
 
     @torch.no_grad()
     def export_ply(self, path) -> None:
         """Write the Gaussians as an INRIA splat PLY (see `ply.py`)."""
         p = {k: v.detach().cpu() for k, v in self.params.items()}
         sh = torch.cat([p["sh_dc"], p["sh_rest"]], 1).numpy()
-        write_splat_ply(path, p["means"].numpy(), p["quats"].numpy(), p["log_scales"].numpy(),
-                        p["opacity_logits"].numpy(), sh)
+        write_splat_ply(
+            path,
+            p["means"].numpy(),
+            p["quats"].numpy(),
+            p["log_scales"].numpy(),
+            p["opacity_logits"].numpy(),
+            sh,
+        )
 
 
 def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
@@ -458,6 +580,16 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
 # 215 x 382 (3,876 steps in 600 s), 500k at 179 x 319 and 300k at 107 x 191 (the fixed cost of a
 # step weighs more on small images); 350k, measured on a loaded machine, chose one level too
 # coarse at 2 and 10 minutes
-RESOLUTION = ResolutionPolicy(pixels_per_s=450e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600)
-SPEC = register(MethodSpec(name="3dgs", config_cls=GaussiansConfig, build=build, presets=PRESETS,
-                           resolution=RESOLUTION))
+RESOLUTION = ResolutionPolicy(
+    pixels_per_s=450e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600
+)
+SPEC = register(
+    MethodSpec(
+        name="3dgs",
+        config_cls=GaussiansConfig,
+        build=build,
+        presets=PRESETS,
+        resolution=RESOLUTION,
+        starts_from_splats=True,
+    )
+)

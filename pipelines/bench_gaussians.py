@@ -1,7 +1,7 @@
 """Speed benchmark of the 3dgs CPU path (a measurement, not a test: it asserts nothing).
 
-    python -m recon.gaussians.bench --gaussians 50000 --sizes 200 800 --out bench_3dgs.json
-    python -m recon.gaussians.bench --workspace WS --warmup 600 --steps 40   # a real scene
+    python pipelines/bench_gaussians.py --gaussians 50000 --sizes 200 800 --out bench_3dgs.json
+    python pipelines/bench_gaussians.py --workspace WS --warmup 600 --steps 40   # a real scene
 
 For each image size: render forward and forward+backward ms per frame (projection + SH +
 binning + rasterization), training steps/s of `GaussianModel.train_step` (SSIM loss, Adam, no
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import time
 
@@ -23,42 +22,23 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 from recon.cameras import Cameras
-from recon.gaussians.model import PRESETS, GaussianModel, GaussiansConfig
 from recon.gaussians.render import composite_rgb, composite_rgbd, project_splats
 from recon.models.base import SceneInfo, TrainData
+from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
-LABELS = ("project", "rasterize", "bin", "raster_forward", "loss", "backward", "raster_backward",
-          "project_backward", "optimizer", "densify")
-
-
-def shell_gaussians(G: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """G Gaussians on a sphere shell with random orientations, colours and opacities."""
-    gen = torch.Generator().manual_seed(seed)
-    d = torch.randn(G, 3, generator=gen)
-    means = d / d.norm(dim=-1, keepdim=True) * (0.8 + 0.05 * torch.rand(G, 1, generator=gen))
-    spacing = math.sqrt(4 * math.pi * 0.8**2 / G)  # mean distance between neighbours
-    return {"means": means, "quats": torch.randn(G, 4, generator=gen),
-            "log_scales": torch.log(spacing * (0.5 + torch.rand(G, 3, generator=gen))),
-            "opacity_logits": torch.randn(G, generator=gen) + 1.0,
-            "sh_dc": torch.randn(G, 1, 3, generator=gen) * 0.5,
-            "sh_rest": torch.randn(G, 15, 3, generator=gen) * 0.05}
-
-
-def orbit_cameras(n: int, size: int, radius: float = 3.0) -> Cameras:
-    """n cameras on a circle around the origin, looking at it (OpenCV axes, world z up)."""
-    cfw = torch.zeros(n, 4, 4, dtype=torch.float64)
-    for i in range(n):
-        a = 2 * math.pi * i / n
-        eye = torch.tensor([radius * math.cos(a), radius * math.sin(a), 0.5], dtype=torch.float64)
-        forward = -eye / eye.norm()
-        right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-        right = right / right.norm()
-        R = torch.stack([right, torch.linalg.cross(forward, right), forward])
-        cfw[i, :3, :3], cfw[i, :3, 3], cfw[i, 3, 3] = R, -R @ eye, 1.0
-    K = torch.tensor([[1.2 * size, 0, size / 2], [0, 1.2 * size, size / 2], [0, 0, 1]],
-                     dtype=torch.float64).expand(n, 3, 3).clone()
-    wh = torch.full((n,), size)
-    return Cameras(K, cfw, wh, wh.clone())
+LABELS = (
+    "project",
+    "rasterize",
+    "bin",
+    "raster_forward",
+    "loss",
+    "backward",
+    "raster_backward",
+    "project_backward",
+    "optimizer",
+    "densify",
+)
 
 
 def median_ms(fn, reps: int) -> float:
@@ -84,20 +64,31 @@ def bench_render(gaussians: dict, camera: Cameras, reps: int) -> dict[str, float
         rgb, _ = composite_rgb(project_splats(params, camera, 3), bg)
         rgb.sum().backward()
 
-    return {"forward_ms": median_ms(forward, reps),
-            "forward_backward_ms": median_ms(forward_backward, reps)}
+    return {
+        "forward_ms": median_ms(forward, reps),
+        "forward_backward_ms": median_ms(forward_backward, reps),
+    }
 
 
 def training_setup(gaussians: dict, cameras: Cameras) -> tuple[GaussianModel, TrainData]:
     with torch.no_grad():
-        images = torch.stack([composite_rgb(project_splats(gaussians, cameras[i], 3),
-                                            torch.zeros(3))[0] for i in range(len(cameras))])
+        images = torch.stack(
+            [
+                composite_rgb(project_splats(gaussians, cameras[i], 3), torch.zeros(3))[0]
+                for i in range(len(cameras))
+            ]
+        )
     G = gaussians["means"].shape[0]
     gen = torch.Generator().manual_seed(1)
-    scene = SceneInfo(aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), unbounded=False,
-                      background=torch.zeros(3), near=0.1, far=6.0,
-                      points=gaussians["means"] + 0.01 * torch.randn(G, 3, generator=gen),
-                      point_colors=torch.rand(G, 3, generator=gen))
+    scene = SceneInfo(
+        aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]),
+        unbounded=False,
+        background=torch.zeros(3),
+        near=0.1,
+        far=6.0,
+        points=gaussians["means"] + 0.01 * torch.randn(G, 3, generator=gen),
+        point_colors=torch.rand(G, 3, generator=gen),
+    )
     config = GaussiansConfig(**{**PRESETS["fast"], "densify_start": 10**9, "sh_degree_interval": 1})
     return GaussianModel(config, scene), TrainData(images.clamp(0, 1), cameras)
 
@@ -122,13 +113,18 @@ def profile_steps(model: GaussianModel, data: TrainData, first: int, steps: int)
             model.train_step(data, step)
     totals = {e.key: e.cpu_time_total for e in prof.key_averages()}
     split = {k: round(totals.get(f"3dgs.{k}", 0.0) / steps / 1000, 2) for k in LABELS}
-    split["backward_other"] = round(split["backward"] - split["raster_backward"]
-                                    - split["project_backward"], 2)
-    labelled = sum(split[k] for k in ("project", "rasterize", "loss", "backward", "optimizer",
-                                      "densify"))
+    split["backward_other"] = round(
+        split["backward"] - split["raster_backward"] - split["project_backward"], 2
+    )
+    labelled = sum(
+        split[k] for k in ("project", "rasterize", "loss", "backward", "optimizer", "densify")
+    )
     split["unlabelled"] = round(1000 / steps_per_s - labelled, 2)  # Python, logging, view pick
-    return {"steps_per_s": round(steps_per_s, 3), "ms_per_step_profiled": split,
-            "gaussians": model.num_gaussians}
+    return {
+        "steps_per_s": round(steps_per_s, 3),
+        "ms_per_step_profiled": split,
+        "gaussians": model.num_gaussians,
+    }
 
 
 def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str]) -> dict:
@@ -147,9 +143,13 @@ def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str
     for step in range(warmup):
         model.train_step(data, step)
     warm_s = time.perf_counter() - t0
-    return {"workspace": workspace, "warmup_steps": warmup, "warmup_s": round(warm_s, 1),
-            "size": [int(data.cameras.width[0]), int(data.cameras.height[0])],
-            **profile_steps(model, data, warmup, steps)}
+    return {
+        "workspace": workspace,
+        "warmup_steps": warmup,
+        "warmup_s": round(warm_s, 1),
+        "size": [int(data.cameras.width[0]), int(data.cameras.height[0])],
+        **profile_steps(model, data, warmup, steps),
+    }
 
 
 def main() -> None:
@@ -162,8 +162,13 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also write the results to this JSON file")
     parser.add_argument("--workspace", default=None, help="profile training on this workspace")
     parser.add_argument("--warmup", type=int, default=600, help="--workspace: steps before timing")
-    parser.add_argument("--set", dest="overrides", action="append", default=[],
-                        help="--workspace: override a config field, KEY=VALUE (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        help="--workspace: override a config field, KEY=VALUE (repeatable)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     numba.set_num_threads(args.threads)

@@ -1,0 +1,49 @@
+"""The method registry: the list the CLI offers, capabilities instead of names, and files from
+a newer recon refused with a clear error."""
+
+import json
+
+import pytest
+import torch
+
+from recon.models.registry import METHOD_NAMES, MODEL_SCHEMA_VERSION, import_methods, load_model
+from recon.workspace import Workspace, WorkspaceError
+from recon.workspace.runs import load_run
+
+
+def test_every_listed_method_registers_and_declares_its_capabilities():
+    from recon.models.nerf import NeRFModel
+    from recon.models.ngp import NGPModel
+    from recon.models.plenoxel import PlenoxelModel
+    from recon.models.splatting import GaussianModel
+
+    specs = import_methods()
+    assert set(METHOD_NAMES) <= set(specs)  # tests may register toy methods of their own
+    classes = {"nerf": NeRFModel, "ngp": NGPModel, "plenoxel": PlenoxelModel, "3dgs": GaussianModel}
+    assert {n for n, c in classes.items() if c.has_density} == {"nerf", "ngp", "plenoxel"}
+    assert {n for n, c in classes.items() if c.exports_splats} == {"3dgs"}
+    assert {n for n, s in specs.items() if s.starts_from_splats} == {"3dgs"}
+
+
+def test_a_model_file_from_a_newer_recon_is_refused(tmp_path):
+    path = tmp_path / "model.pt"
+    torch.save(
+        {
+            "schema_version": MODEL_SCHEMA_VERSION + 1,
+            "method": "ngp",
+            "config": {},
+            "state_dict": {},
+        },
+        path,
+    )
+    with pytest.raises(ValueError, match="newer recon"):
+        load_model(path, scene=None)
+
+
+def test_a_run_from_a_newer_recon_is_refused(tmp_path):
+    ws = Workspace.create(tmp_path / "ws")
+    ws.run_dir("r").mkdir(parents=True)
+    ws.run_json("r").write_text(json.dumps({"schema_version": 99, "method": "ngp"}))
+    ws.model_path("r").write_bytes(b"")
+    with pytest.raises(WorkspaceError, match="newer recon"):
+        load_run(ws, "r")

@@ -1,0 +1,36 @@
+"""The one learning-rate decay: the worked example, its limits, and the log-linear form the
+3DGS means schedule was written in before (a twin)."""
+
+import math
+
+import pytest
+import torch
+
+from recon.models.schedules import exp_decay_lr, set_lr
+
+
+def test_worked_example_and_limits():
+    assert exp_decay_lr(500, 1e-2, 1e-3, 1000) == pytest.approx(1e-2 * 10**-0.5)  # 3.16e-3
+    assert exp_decay_lr(0, 1e-2, 1e-3, 1000) == 1e-2
+    assert exp_decay_lr(5000, 1e-2, 1e-3, 1000) == pytest.approx(1e-3)
+    assert exp_decay_lr(300, 1e-2, 1e-3, 1000, start=400) == 1e-2  # held until start
+    assert exp_decay_lr(700, 1e-2, 1e-3, 1000, start=400) == pytest.approx(1e-2 * 10**-0.5)
+
+
+@pytest.mark.parametrize("step", [0, 1, 777, 29_999, 30_000, 40_000])
+def test_equals_the_log_linear_interpolation(step):
+    lr, final, n = 1.6e-4, 1.6e-6, 30_000
+    t = min(step / n, 1.0)
+    log_linear = math.exp((1 - t) * math.log(lr) + t * math.log(final))
+    assert exp_decay_lr(step, lr, final, n) == pytest.approx(log_linear, rel=1e-12)
+
+
+def test_set_lr_all_groups_or_one_named_group():
+    a, b = torch.nn.Parameter(torch.zeros(1)), torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.Adam(
+        [{"params": [a], "name": "means"}, {"params": [b], "name": "sh"}], lr=1.0
+    )
+    set_lr(opt, 0.5, "means")
+    assert [g["lr"] for g in opt.param_groups] == [0.5, 1.0]
+    set_lr(opt, 0.25)
+    assert [g["lr"] for g in opt.param_groups] == [0.25, 0.25]
