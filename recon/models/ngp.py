@@ -40,7 +40,7 @@ from recon.models.raymarch import (
     trunc_exp,
 )
 from recon.models.schedules import exp_decay_lr, set_lr
-from recon.options import opt
+from recon.options import on_off_auto, opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, terminated_mask, volume_render
 from recon.volrend.distortion import distortion_loss
 from recon.volrend.occupancy import marching_distance
@@ -155,9 +155,7 @@ class NGPField(nn.Module):
 
 def uses_distortion(mode: str, unbounded: bool) -> bool:
     """on | off, or auto: on for an unbounded capture (floaters in the contracted far field)."""
-    if mode not in ("auto", "on", "off"):
-        raise ValueError(f"distortion must be auto, on or off, got {mode!r}")
-    return mode == "on" or (mode == "auto" and unbounded)
+    return on_off_auto(mode, "distortion", unbounded)
 
 
 class NGPModel(Model):

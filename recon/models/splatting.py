@@ -50,7 +50,7 @@ from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.schedules import exp_decay_lr, set_lr
-from recon.options import opt
+from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
@@ -223,9 +223,7 @@ def pose_lr(config: GaussiansConfig, step: int) -> float:
 def uses_appearance(config: GaussiansConfig, scene: SceneInfo) -> bool:
     """on | off, or auto: on for unbounded captures (real photos, whose exposure and white
     balance vary), off for bounded scenes with alpha (synthetic renders of known exposure)."""
-    if config.appearance not in ("on", "off", "auto"):
-        raise ValueError(f"appearance must be on, off or auto, got {config.appearance!r}")
-    return config.appearance == "on" or (config.appearance == "auto" and bool(scene.unbounded))
+    return on_off_auto(config.appearance, "appearance", bool(scene.unbounded))
 
 
 def view_for_step(step: int, n_views: int, seed: int) -> int:
