@@ -268,7 +268,7 @@ def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse:
     out_plot = Path(out_dir) / f"{date}-{machine}-speed_vs_error.png"
     out_plot.parent.mkdir(parents=True, exist_ok=True)
     out_plot.write_bytes((ws / "speed_vs_error.png").read_bytes())
-    results["speed_vs_error_png"] = str(out_plot.relative_to(ROOT))
+    results["speed_vs_error_png"] = os.path.relpath(out_plot, ROOT)  # --out-dir may lie outside
     if not skip_sfm:
         for scene, images, transforms in (
             ("sample", ROOT / "sample_data" / "images", ROOT / "sample_data" / "transforms.json"),

@@ -61,5 +61,13 @@ def from_options(cls, values: dict[str, Any], **more: Any):
     return cls(**{k: v for k, v in values.items() if k in names}, **more)
 
 
+def on_off_auto(value: str, name: str, auto: bool) -> bool:
+    """An on | off | auto option: True for on, False for off, `auto` for auto (what the scene
+    calls for); anything else is a ValueError naming the option."""
+    if value not in ("on", "off", "auto"):
+        raise ValueError(f"{name} must be on, off or auto, got {value!r}")
+    return value == "on" or (value == "auto" and auto)
+
+
 def _sentence(text: str) -> str:
     return text[:1].upper() + text[1:]

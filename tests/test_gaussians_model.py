@@ -179,19 +179,23 @@ def test_registered_with_flat_documented_config():
 
 
 def test_fit_schedules_worked_example():
-    from recon.models.splatting import fit_schedules
+    from recon.models.schedules import fit_schedules
+    from recon.models.splatting import SCHEDULE_FRACTIONS
+
+    def fit(config):
+        return fit_schedules(config, SCHEDULE_FRACTIONS)
 
     fast = GaussiansConfig(**PRESETS["fast"])
-    fitted = fit_schedules(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}))
+    fitted = fit(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}))
     assert (
         fitted.lr_decay_steps,
         fitted.densify_stop,
         fitted.opacity_reset_interval,
         fitted.sh_degree_interval,
     ) == (1600, 1120, 560, 320)
-    assert fit_schedules(fast) == fast  # schedule_steps 0: as configured
+    assert fit(fast) == fast  # schedule_steps 0: as configured
     long = GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 6000})  # lego-200, 10 min
-    assert fit_schedules(long) == long  # a run longer than the schedules keeps them
+    assert fit(long) == long  # a run longer than the schedules keeps them
 
 
 def test_coarse_to_fine_fits_downscaled_targets_first():

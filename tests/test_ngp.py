@@ -309,9 +309,12 @@ def test_a_run_saved_without_learned_background_loads_with_the_scene_colour():
     )
 
 
-def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients():
-    """Training renders from one density pass with gradients (termination decided on its values);
-    the twin evaluates the density without gradients first and the field again on the survivors."""
+def test_both_training_passes_match_the_prepass_twin_on_outputs_and_gradients():
+    """Training renders either from one density pass with gradients (termination decided on its
+    values) or, once termination drops many samples, from a density pre-pass without gradients
+    and the field on the survivors; the literal twin evaluates the density without gradients
+    first and the field again on the survivors. All three: the same samples, loss, gradients."""
+    from recon.models.ngp import PREPASS_BELOW_KEPT
     from recon.volrend import terminated_mask, volume_render
 
     data, info = unbounded_sphere_scene(n_cams=2, size=16)
@@ -341,14 +344,18 @@ def test_single_density_pass_matches_the_prepass_twin_on_outputs_and_gradients()
         rgb = model.field.color(geo, model.field.encode_directions(d)[ri])
         return volume_render(sigma, rgb, t0, t1, ri, o.shape[0], model.background_colour(d)), ri
 
-    fast = loss_and_grads(lambda: model._render_rays_train(o, d))
-    slow = loss_and_grads(prepass)
+    assert model._kept_fraction == 1.0  # a new run starts with the single pass
+    one_pass = loss_and_grads(lambda: model._render_rays_train(o, d))
+    assert model._kept_fraction < PREPASS_BELOW_KEPT  # so the next step takes the pre-pass
+    two_pass = loss_and_grads(lambda: model._render_rays_train(o, d))
+    twin = loss_and_grads(prepass)
     marched = model._occupied_samples(o, d, jitter=True)[0].numel()
-    assert fast[1] == slow[1] < 0.7 * marched  # termination dropped many samples, the same ones
-    torch.testing.assert_close(fast[0], slow[0])
-    assert len(fast[2]) == len(slow[2]) > 0
-    for gf, gs in zip(fast[2], slow[2]):
-        torch.testing.assert_close(gf, gs, rtol=1e-4, atol=1e-7)
+    assert one_pass[1] == two_pass[1] == twin[1] < 0.7 * marched  # the same samples dropped
+    for fast in (one_pass, two_pass):
+        torch.testing.assert_close(fast[0], twin[0])
+        assert len(fast[2]) == len(twin[2]) > 0
+        for gf, gs in zip(fast[2], twin[2]):
+            torch.testing.assert_close(gf, gs, rtol=1e-4, atol=1e-7)
 
 
 def test_distortion_is_on_by_default_for_unbounded_scenes_only():
@@ -376,3 +383,10 @@ def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     torch.testing.assert_close(
         torch.tensor(plain["loss"]), torch.tensor(10 ** (-plain["psnr"] / 10))
     )
+
+
+def test_the_lr_decay_is_fitted_into_the_planned_run():
+    _, info = unbounded_sphere_scene(n_cams=2, size=8)
+    config = NGPConfig(**{**SMALL.__dict__, "lr_decay_steps": 5000, "schedule_steps": 900})
+    assert NGPModel(config, info).cfg.lr_decay_steps == 900
+    assert NGPModel(SMALL, info).cfg.lr_decay_steps == SMALL.lr_decay_steps  # not planned

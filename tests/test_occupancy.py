@@ -20,6 +20,7 @@ from recon.volrend.occupancy import (
     cells_of,
     dilated_cells,
     first_per_ray,
+    march_terminated,
     ray_spans,
 )
 
@@ -163,6 +164,45 @@ def test_terminated_mask_drops_after_opaque():
     t = torch.arange(6.0)
     ri = torch.tensor([0, 0, 0, 1, 1, 1])
     assert terminated_mask(sig, t, t + 1, ri).tolist() == [True, True, False, True, True, True]
+
+
+def _march_with_termination_twin(density, first, max_samples):
+    """march_terminated against its literal twin: march everything, terminated_mask over it."""
+    grid, step = trained_grid(density)
+    o, d = rays(n=300)
+    t_min, t_max, _ = ray_aabb_intersect(o, d, AABB)
+    u = torch.rand(o.shape[0], generator=torch.Generator().manual_seed(2))
+    sigma = lambda x: density(x * 2 - 1)
+
+    def march(ids, k):
+        ri, t0, t1 = grid.march(
+            o[ids], d[ids], t_min[ids], t_max[ids], AABB, False, step, 0.0, u[ids],
+            k if k > 0 and (max_samples <= 0 or k < max_samples) else max_samples,
+        )  # fmt: skip
+        x = scene_to_unit_cube(o[ids][ri] + (0.5 * (t0 + t1))[:, None] * d[ids][ri], AABB, False)
+        return ri, t0, t1, x
+
+    ids = torch.arange(o.shape[0])
+    ri, t0, t1, x = march(ids, 0)
+    keep = terminated_mask(sigma(x), t0, t1, ri, 1e-4)
+    got = march_terminated(march, sigma, o.shape[0], 1e-4, first, max_samples)
+    for a, b in zip(got[:4], (ri[keep], t0[keep], t1[keep], x[keep])):
+        assert torch.equal(a, b)
+    return got[4], ri.shape[0], int(keep.sum())
+
+
+def test_march_terminated_keeps_what_terminated_mask_keeps_and_evaluates_less():
+    # a dense sphere: rays through it terminate a few samples in, the later rounds are short
+    for first in (2, 4):
+        evaluated, marched, kept = _march_with_termination_twin(sphere_density, first, 0)
+        assert kept < marched and evaluated < 0.8 * marched, (first, evaluated, marched)
+    # a thin density that never terminates: every ray open after the first round
+    faint = lambda x: 0.01 * sphere_density(x)
+    evaluated, marched, kept = _march_with_termination_twin(faint, 4, 0)
+    assert evaluated == marched == kept
+    # with a cap on samples per ray, and a first round at and beyond it
+    for first in (1, 3, 6, 0):
+        _march_with_termination_twin(sphere_density, first, 6)
 
 
 def test_ray_spans_worked_example_and_empty_rays():

@@ -18,7 +18,7 @@ def test_every_listed_method_registers_and_declares_its_capabilities():
     from recon.models.splatting import GaussianModel
 
     specs = import_methods()
-    assert sorted(specs) == sorted(METHOD_NAMES)
+    assert set(METHOD_NAMES) <= set(specs)  # tests may register toy methods of their own
     classes = {"nerf": NeRFModel, "ngp": NGPModel, "plenoxel": PlenoxelModel, "3dgs": GaussianModel}
     assert {n for n, c in classes.items() if c.has_density} == {"nerf", "ngp", "plenoxel"}
     assert {n for n, c in classes.items() if c.exports_splats} == {"3dgs"}

@@ -34,3 +34,20 @@ def test_set_lr_all_groups_or_one_named_group():
     assert [g["lr"] for g in opt.param_groups] == [0.5, 1.0]
     set_lr(opt, 0.25)
     assert [g["lr"] for g in opt.param_groups] == [0.25, 0.25]
+
+
+def test_fit_schedules_worked_example():
+    from dataclasses import dataclass
+
+    from recon.models.schedules import fit_schedules
+
+    @dataclass(frozen=True)
+    class Toy:
+        schedule_steps: int = 1600
+        lr_decay_steps: int = 5000
+        densify_stop: int = 2000
+
+    fractions = {"lr_decay_steps": 1.0, "densify_stop": 0.7}
+    assert fit_schedules(Toy(), fractions) == Toy(1600, 1600, 1120)
+    assert fit_schedules(Toy(schedule_steps=0), fractions) == Toy(0)  # not planned
+    assert fit_schedules(Toy(schedule_steps=9000), fractions) == Toy(9000)  # long enough

@@ -10,7 +10,7 @@ from recon.cameras import Cameras
 from recon.models.base import MethodSpec, Model, register
 from recon.options import field_help
 from recon.train.config import TrainConfig, apply_overrides
-from recon.train.loop import LoopState, run_loop, should_stop
+from recon.train.loop import LoopState, eval_due, run_loop, should_stop
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,7 +103,7 @@ def test_time_budget_counts_evaluations():
 
     cams, imgs = _held(4)
     st, logs = LoopState(), []
-    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
+    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01, eval_max_fraction=0.0)
     model, data = SlowEval(0.05), _data()
     t0 = time.perf_counter()
     assert run_loop(model, data, cams, imgs, cfg, st, logs.append, lambda s: None) == "time_budget"
@@ -111,6 +111,29 @@ def test_time_budget_counts_evaluations():
     assert 0.8 <= st.elapsed_s <= 1.1 and took <= 1.2
     assert st.wall_s < 0.5 * st.elapsed_s  # the steps are cheap: evaluation dominates
     assert logs[-1]["test_psnr"] > 0 and logs[-1]["elapsed_s"] <= 1.1
+
+
+def test_slow_evaluations_are_capped_to_a_fraction_of_the_run():
+    """The same slow evaluations (0.2 s each) with the default cap (0.1): after the first one
+    the next is not due before the run is 4 s old, so in 1 s only the final one follows."""
+    cams, imgs = _held(4)
+    st, logs = LoopState(), []
+    cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
+    assert cfg.eval_max_fraction == 0.1
+    assert run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    evals = [e for e in logs if "test_psnr" in e]
+    assert len(evals) == 2  # the first periodic one and the final one; uncapped: one per 10 ms
+    assert st.wall_s > 0.5 * st.elapsed_s  # training, not evaluating, fills the budget
+
+
+def test_eval_due_worked_example():
+    cfg = TrainConfig(method="toy", eval_every_s=30.0, eval_max_fraction=0.1)
+    assert not eval_due(cfg, LoopState(wall_s=20.0))
+    assert eval_due(cfg, LoopState(wall_s=30.0, elapsed_s=31.0))  # nothing spent yet
+    # 10 s evaluations: after one at 40 s of the run the next waits until the run is 200 s
+    spent = {"eval_total_s": 10.0, "eval_cost_s": 10.0, "last_eval_wall": 30.0}
+    assert not eval_due(cfg, LoopState(wall_s=80.0, elapsed_s=95.0, **spent))
+    assert eval_due(cfg, LoopState(wall_s=180.0, elapsed_s=190.0, **spent))
 
 
 def test_interrupt_during_an_evaluation_stops_between_views():

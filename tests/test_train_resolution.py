@@ -1,5 +1,7 @@
 """The working-resolution rule: worked examples on the real scene sizes, and the overrides."""
 
+import dataclasses
+
 import pytest
 
 from recon.models.base import ResolutionPolicy
@@ -106,3 +108,28 @@ def test_planned_steps_worked_example():
         planned_steps(269, 478, SPLATS, 0, 0, 2) == 0
         and planned_steps(269, 478, SPLATS, 600, 0, 2, cpu=False) == 0
     )
+    affine = dataclasses.replace(SPLATS, step_overhead_s=0.05, step_pixels_per_s=1e6)
+    assert planned_steps(269, 478, affine, 600, 0, 2) == 3359  # 600 / (0.05 + 128582 / 1e6)
+    assert planned_steps(269, 478, affine, 600, 0, 4) == 6719  # twice the threads
+    assert planned_steps(358, 638, affine, 1800, 0, 2) == 6465  # fox-real made 6,479
+
+
+def test_3dgs_plans_the_fox_real_runs_within_ten_percent_of_their_steps():
+    """The steps the 3dgs policy plans for the four quiet fox-real runs (2, 5, 10, 30 min at
+    the levels the rule chose) against the steps they made (commits a87c7be, 4497ef7)."""
+    from recon.models.splatting import RESOLUTION
+    from recon.train.resolution import planned_steps
+
+    made = {(120, 119, 212): 1623, (300, 179, 319): 2625, (600, 269, 478): 3642}
+    made[(1800, 358, 638)] = 6479
+    for (budget, w, h), steps in made.items():
+        plan = planned_steps(w, h, RESOLUTION, budget, 0, 2)
+        assert abs(plan - steps) < 0.1 * steps, (budget, plan, steps)
+
+
+def test_ngp_plans_the_fox_real_ten_minute_run_within_ten_percent_of_its_steps():
+    from recon.models.ngp import RESOLUTION
+    from recon.train.resolution import planned_steps
+
+    plan = planned_steps(215, 382, RESOLUTION, 600, 0, 2)  # made 1,455 steps at commit e0425d0
+    assert abs(plan - 1455) < 0.1 * 1455, plan

@@ -47,6 +47,7 @@ def _list_options(method: str) -> str:
 @config_option(TrainConfig, "eval_every_s")
 @config_option(TrainConfig, "eval_views")
 @config_option(TrainConfig, "eval_max_side", type=click.IntRange(16))
+@config_option(TrainConfig, "eval_max_fraction", type=click.FloatRange(0.0, 1.0))
 @config_option(TrainConfig, "checkpoint_every_s")
 @config_option(TrainConfig, "keep_checkpoints", type=click.IntRange(1))
 @config_option(TrainConfig, "seed")

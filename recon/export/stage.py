@@ -26,7 +26,7 @@ def export_splats(
     if not model.exports_splats:
         raise WorkspaceError(
             f"run '{run}' is a {run_doc['method']} run, which has no Gaussians to "
-            "export (`recon export` writes Gaussian splats)"
+            "export (`recon export` writes the Gaussian splats of a 3dgs run)"
         )
     g = model.splats()
     if frame == "world":

@@ -159,6 +159,10 @@ class ResolutionPolicy:
     pixels_per_step: float = 0.0  # pixels per step for a --steps run (0: one whole image per step)
     min_epochs: float = 30.0  # passes over every training pixel the method needs at one size
     max_side: int = 1600  # longest image side trained on without a time budget (or on a GPU)
+    # The step plan (`planned_steps`, which lays out the step schedules) may take a step's time
+    # as affine in its pixels instead: step_overhead_s + pixels / step_pixels_per_s
+    step_overhead_s: float = 0.0  # seconds a step costs whatever its size, on 2 threads
+    step_pixels_per_s: float = 0.0  # pixels a second beyond that overhead (0: pixels_per_s)
 
 
 @dataclass(frozen=True)

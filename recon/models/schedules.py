@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import TypeVar
+
 import torch
+
+C = TypeVar("C")
 
 
 def exp_decay_lr(step: int, lr: float, lr_final: float, decay_steps: int, start: int = 0) -> float:
@@ -19,3 +24,20 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float, group: str | None = None
     for g in optimizer.param_groups:
         if group is None or g.get("name") == group:
             g["lr"] = lr
+
+
+def fit_schedules(config: C, fractions: dict[str, float]) -> C:
+    """The config with every step schedule named in `fractions` that outlasts the planned run
+    (`config.schedule_steps`, 0 = not planned) shortened to end at its fraction of it: a
+    10-minute CPU run of ~2,000 steps decays its learning rate (and stops densifying) in time,
+    where a reference's 30,000-step schedule would end it mid-way at a high learning rate. Runs
+    at least as long as the schedules keep them unchanged. Example: schedule_steps 1,600,
+    {"lr_decay_steps": 1.0, "densify_stop": 0.7}, lr_decay_steps 5,000 and densify_stop 2,000
+    -> 1,600 and 1,120."""
+    if config.schedule_steps <= 0:
+        return config
+    fitted = {
+        name: min(getattr(config, name), max(1, round(fraction * config.schedule_steps)))
+        for name, fraction in fractions.items()
+    }
+    return replace(config, **fitted)

@@ -23,7 +23,7 @@ of a pixel) and 5,400 steps end at 31.5 dB against 32.8 dB without; fox gains no
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -49,11 +49,13 @@ from recon.gaussians.ssim import ssim
 from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
-from recon.models.schedules import exp_decay_lr, set_lr
-from recon.options import opt
+from recon.models.schedules import exp_decay_lr, fit_schedules, set_lr
+from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
+# with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
+# opacity_reset_interval 560, sh_degree_interval 320.
 # measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
 # until 0.7 of the run with the means lr decayed over the whole run beats the lego-tuned steps
 # (30.66 against 29.38 dB) and shrinking everything by the same factor (30.51 dB, far fewer
@@ -168,23 +170,6 @@ PRESETS = {
 }
 
 
-def fit_schedules(config: GaussiansConfig) -> GaussiansConfig:
-    """The config with every step schedule that outlasts the planned run shortened to end at its
-    fraction of it (`SCHEDULE_FRACTIONS`): a 10-minute CPU run of ~2,000 steps decays its
-    learning rate and stops densifying in time, where the reference's 30,000-step schedule (or
-    the fast preset's 5,000) would end it mid-densification at a high learning rate. Runs at
-    least as long as the schedules keep them unchanged. Example: schedule_steps 1,600 with the
-    fast preset -> lr_decay_steps 1,600, densify_stop 1,120, opacity_reset_interval 560,
-    sh_degree_interval 320."""
-    if config.schedule_steps <= 0:
-        return config
-    fitted = {
-        name: min(getattr(config, name), max(1, round(fraction * config.schedule_steps)))
-        for name, fraction in SCHEDULE_FRACTIONS.items()
-    }
-    return replace(config, **fitted)
-
-
 def photometric_loss(rgb: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
     """(1 - lambda) |rgb - target|_1 + lambda (1 - SSIM(rgb, target)), SSIM with the 11x11
     Gaussian window, sigma 1.5, valid windows (`ssim.py`, the twin of pytorch_msssim).
@@ -223,9 +208,7 @@ def pose_lr(config: GaussiansConfig, step: int) -> float:
 def uses_appearance(config: GaussiansConfig, scene: SceneInfo) -> bool:
     """on | off, or auto: on for unbounded captures (real photos, whose exposure and white
     balance vary), off for bounded scenes with alpha (synthetic renders of known exposure)."""
-    if config.appearance not in ("on", "off", "auto"):
-        raise ValueError(f"appearance must be on, off or auto, got {config.appearance!r}")
-    return config.appearance == "on" or (config.appearance == "auto" and bool(scene.unbounded))
+    return on_off_auto(config.appearance, "appearance", bool(scene.unbounded))
 
 
 def view_for_step(step: int, n_views: int, seed: int) -> int:
@@ -259,7 +242,7 @@ class GaussianModel(Model):
 
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()
-        self.config = config = fit_schedules(config)
+        self.config = config = fit_schedules(config, SCHEDULE_FRACTIONS)
         self.strategy = densify_strategy(config)
         self.register_buffer("background", scene.background.float().clone())
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
@@ -576,12 +559,20 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
     return GaussianModel(config, scene)
 
 
-# one whole image a step at ~450k px/s: the quiet fox-real benchmark measured 530k px/s at
-# 215 x 382 (3,876 steps in 600 s), 500k at 179 x 319 and 300k at 107 x 191 (the fixed cost of a
-# step weighs more on small images); 350k, measured on a loaded machine, chose one level too
-# coarse at 2 and 10 minutes
+# The working resolution: one whole image a step at ~450k px/s (the quiet fox-real benchmark
+# measured 530k px/s at 215 x 382, 500k at 179 x 319 and 300k at 107 x 191; 350k, measured on
+# a loaded machine, chose one level too coarse at 2 and 10 minutes). The step plan: a step's
+# wall time is affine in its pixels, 50 ms + 1 us a pixel (a least-squares fit to the four
+# fox-real runs, 76-278 ms a step from 25k to 228k pixels, within 8 %), where the one rate
+# had planned 2,099 steps for a 10-minute run that made 3,642, and 2,758 for 30 minutes that
+# made 6,479: the densification stopped and the lr decayed long before the end.
 RESOLUTION = ResolutionPolicy(
-    pixels_per_s=450e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600
+    pixels_per_s=450e3,
+    pixels_per_step=0.0,
+    min_epochs=30.0,
+    max_side=1600,
+    step_overhead_s=0.05,
+    step_pixels_per_s=1.0e6,
 )
 SPEC = register(
     MethodSpec(

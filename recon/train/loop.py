@@ -31,6 +31,7 @@ class LoopState:
     last_ckpt_wall: float = 0.0
     elapsed_s: float = 0.0  # wall time of the run so far, evaluations and checkpoints included
     eval_cost_s: float = 0.0  # how long the last held-out evaluation took
+    eval_total_s: float = 0.0  # how long all held-out evaluations took
 
 
 @torch.no_grad()
@@ -101,7 +102,7 @@ def run_loop(
     while (reason := should_stop(cfg, st)) is None:
         if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
             raise KeyboardInterrupt
-        if held_cams is not None and st.wall_s - st.last_eval_wall >= cfg.eval_every_s:
+        if held_cams is not None and eval_due(cfg, st):
             _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
             tick()
             if (reason := should_stop(cfg, st)) is not None:
@@ -155,10 +156,23 @@ def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict],
         raise FloatingPointError(f"non-finite values in {', '.join(bad[:3])} after step {st.step}")
 
 
+def eval_due(cfg: TrainConfig, st: LoopState) -> bool:
+    """A periodic evaluation is due every eval_every_s of training, unless the evaluations
+    (this one estimated at the last one's cost) would exceed eval_max_fraction of the wall
+    time. Example: 10 s evaluations, fraction 0.1: at most one per 100 s of the run."""
+    if st.wall_s - st.last_eval_wall < cfg.eval_every_s:
+        return False
+    if cfg.eval_max_fraction <= 0:
+        return True
+    spent = st.eval_total_s + st.eval_cost_s
+    return spent <= cfg.eval_max_fraction * (st.elapsed_s + st.eval_cost_s)
+
+
 def _evaluate(model, cams, imgs, cfg, st: LoopState, log, interrupted) -> None:
     t0 = time.perf_counter()
     psnr = heldout_psnr(model, cams, imgs, interrupted)
     st.eval_cost_s = time.perf_counter() - t0
+    st.eval_total_s += st.eval_cost_s
     st.last_eval_wall = st.wall_s
     if psnr > st.best_psnr + cfg.min_improvement_db:
         st.best_psnr, st.evals_since_best = psnr, 0

@@ -69,17 +69,18 @@ def planned_steps(
     cpu: bool = True,
 ) -> int:
     """The steps a run at width x height is expected to make: --steps, or what the time budget
-    buys at the policy's throughput on a CPU (pixels_per_step, or one image, per step), the
-    smaller of the two; 0 when nothing bounds the run. Only an estimate (a 3DGS step slows as
-    Gaussians are added and is faster at the coarse levels): schedules laid out over it need
+    buys on a CPU at the policy's step time, the smaller of the two; 0 when nothing bounds the
+    run. A step costs step_overhead_s + P / step_pixels_per_s seconds on 2 threads (P =
+    pixels_per_step, or one image), scaled by 2 / threads. Only an estimate (a 3DGS step slows
+    as Gaussians are added and is faster at the coarse levels): schedules laid out over it need
     not end exactly at the last step.
-    Example: 600 s of 3dgs at 269 x 478 on 2 threads -> 600 * 350e3 / 128582 = 1633 steps."""
+    Example: 600 s of 3dgs at 269 x 478 on 2 threads, 50 ms + 1 us per pixel a step ->
+    600 / (0.05 + 128582 / 1e6) = 3359 steps (the fox-real benchmark made 3,642)."""
     bounds = [steps] if steps > 0 else []
     if time_budget_s > 0 and cpu:
-        per_step = policy.pixels_per_step or width * height
-        bounds.append(
-            int(time_budget_s * policy.pixels_per_s * threads / MEASURED_THREADS / per_step)
-        )
+        pixels = policy.pixels_per_step or width * height
+        step_s = policy.step_overhead_s + pixels / (policy.step_pixels_per_s or policy.pixels_per_s)
+        bounds.append(int(time_budget_s * threads / MEASURED_THREADS / step_s))
     return min(bounds) if bounds else 0
 
 

@@ -10,7 +10,12 @@ Pure functions over sample intervals, padded (R, S) or packed (N,) + ray_indices
 """
 
 from recon.volrend.contraction import contract, normalize_to_box, scene_to_unit_cube
-from recon.volrend.occupancy import OccupancyGrid, march_intervals, terminated_mask
+from recon.volrend.occupancy import (
+    OccupancyGrid,
+    march_intervals,
+    march_terminated,
+    terminated_mask,
+)
 from recon.volrend.samplers import (
     intervals_from_points,
     merge_points,
@@ -40,6 +45,7 @@ __all__ = [
     "exclusive_cumsum",
     "intervals_from_points",
     "march_intervals",
+    "march_terminated",
     "merge_points",
     "normalize_to_box",
     "ray_aabb_intersect",
