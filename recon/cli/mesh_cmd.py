@@ -22,6 +22,7 @@ from recon.workspace import Workspace
 @config_option(MeshConfig, "min_component")
 @config_option(MeshConfig, "format")
 @config_option(MeshConfig, "device")
+@config_option(MeshConfig, "preview")
 @click.option("--force", is_flag=True, help="Mesh even if the run is stale.")
 @json_option
 def command(workspace, run, force, as_json, **options):
@@ -37,3 +38,5 @@ def command(workspace, run, force, as_json, **options):
             f"mesh: {result['method']} {result.get('vertices')} vertices, {result.get('faces')} faces "
             f"in {result['seconds']:.1f} s -> {result['path']}"
         )
+        if "preview" in result:
+            click.echo(f"mesh: preview -> {result['preview']}")

@@ -9,16 +9,25 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from recon.mesh.cleanup import mesh_stats, remove_small_components, transform_mesh, write_mesh
+from recon.mesh.cleanup import (
+    keep_seen_components,
+    mesh_stats,
+    remove_small_components,
+    transform_mesh,
+    write_mesh,
+)
 from recon.mesh.marching_cubes import (
     choose_density_threshold,
     extract_density_mesh,
     soft_field_threshold,
 )
+from recon.io.images import write_png
+from recon.mesh.preview import shaded_view
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
 from recon.models.registry import pick_device
 from recon.options import opt
@@ -31,8 +40,8 @@ from recon.workspace.runs import load_run
 class MeshConfig:
     method: str = opt(
         "auto",
-        "auto: marching cubes on a density field (nerf/ngp/plenoxel), TSDF fusion "
-        "of rendered depth otherwise (3dgs)",
+        "auto: marching cubes on the zero level set of a signed distance field (sdf), on a "
+        "density field (nerf/ngp/plenoxel), TSDF fusion of rendered depth otherwise (3dgs)",
         choices=("auto", "marching-cubes", "tsdf"),
     )
     resolution: int = opt(
@@ -48,6 +57,9 @@ class MeshConfig:
     truncation: float = opt(0.02, "TSDF truncation as a fraction of the box's longest side")
     min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
     format: str = opt("ply", "mesh file format", choices=("ply", "obj", "glb"))
+    preview: bool = opt(
+        False, "also write mesh/preview.png: the mesh shaded from the first held-out camera"
+    )
     device: str = opt(
         "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
     )
@@ -73,6 +85,36 @@ def rendered_surface_density(
     return np.concatenate(values) if values else np.zeros(0)
 
 
+def field_normals(model, vertices: np.ndarray, device, chunk: int = 1 << 15) -> np.ndarray:
+    """Unit normals (N, 3) at mesh vertices (N, 3) from the gradient of the signed distance
+    field (not from the faces): exact for the surface the field holds."""
+    out = []
+    points = torch.as_tensor(np.asarray(vertices), dtype=torch.float32, device=device)
+    for start in range(0, len(points), chunk):
+        g = model.sdf_gradient(points[start : start + chunk]).detach()
+        out.append(torch.nn.functional.normalize(g, dim=-1).cpu().double().numpy())
+    return np.concatenate(out)
+
+
+def write_preview(ws: Workspace, run: str, scene, mesh, normals, level: int) -> Path:
+    """mesh/preview.png: the mesh (scene frame) shaded from the first held-out camera (the
+    first training camera when nothing is held out) at the run's training resolution."""
+    views = scene.split("test") or scene.split("train")
+    cam = scene.cameras(views[:1], "cpu", level)
+    image = shaded_view(
+        mesh,
+        cam.K[0].numpy(),
+        cam.cam_from_world[0].numpy(),
+        int(cam.width[0]),
+        int(cam.height[0]),
+        normals,
+    )
+    path = ws.mesh_dir(run) / "preview.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_png(path, image)
+    return path
+
+
 def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, progress=None) -> dict:
     key = f"train/{run}"
     ws.require_fresh(key, force)
@@ -84,7 +126,14 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     if method == "auto":
         method = "marching-cubes" if model.has_density else "tsdf"
     started = time.time()
-    if method == "marching-cubes":
+    normals = None
+    if method == "marching-cubes" and getattr(model, "has_sdf", False):
+        # the surface is the zero level set of the distance, inside where it is negative
+        mesh = extract_density_mesh(
+            lambda p: -model.sdf(p), aabb, cfg.resolution, 0.0, color_fn=model.color, device=device
+        )
+        detail = {"level": "sdf = 0", "normals": "field gradient"}
+    elif method == "marching-cubes":
         if not model.has_density:
             raise WorkspaceError(
                 f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf"
@@ -120,11 +169,24 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     if len(mesh.faces) == 0:
         raise WorkspaceError(f"the {method} mesh of run '{run}' is empty: is the run trained?")
     raw_faces = len(mesh.faces)
+    train_cams = scene.cameras(scene.split("train"), "cpu", level)
+    mesh = keep_seen_components(
+        mesh,
+        train_cams.K.numpy(),
+        train_cams.cam_from_world.numpy(),
+        torch.stack([train_cams.width, train_cams.height], 1).numpy(),
+    )
     mesh = remove_small_components(mesh, cfg.min_component)
+    if getattr(model, "has_sdf", False) and method == "marching-cubes" and len(mesh.vertices):
+        normals = field_normals(model, mesh.vertices, device)
+    if cfg.preview:
+        detail["preview"] = str(write_preview(ws, run, scene, mesh, normals, level))
     sim = (
         scene.scene_from_world
     )  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
     mesh = transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
+    if normals is not None:  # directions turn with R^T: n_world = R^T n_scene
+        mesh.vertex_normals = normals @ np.asarray(sim.R, np.float64)
     out_path = ws.mesh_dir(run) / f"mesh.{cfg.format}"
     write_mesh(mesh, out_path)
     stats = mesh_stats(mesh)
