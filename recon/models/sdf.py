@@ -201,7 +201,6 @@ class SDFModel(Model):
         """The rays' march through the occupied cells of the box (`recon.volrend.occupancy`)."""
         t_min, t_max = ray_bounds(self.box_scene, origins, directions)
         u = uniform((origins.shape[0],), t_min, self.generator) if jitter else None
-        cap = self.cfg.max_samples_per_ray
 
         @torch.no_grad()
         def march(ids: Tensor, k: int):
@@ -216,7 +215,7 @@ class SDFModel(Model):
                 self.step_size,
                 0.0,
                 None if u is None else u[ids],
-                k if k > 0 and (cap <= 0 or k < cap) else cap,
+                k,  # march_terminated caps it at max_samples_per_ray
             )
             return ri, t0, t1, o[ri] + (0.5 * (t0 + t1))[:, None] * d[ri]
 
