@@ -383,10 +383,3 @@ def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     torch.testing.assert_close(
         torch.tensor(plain["loss"]), torch.tensor(10 ** (-plain["psnr"] / 10))
     )
-
-
-def test_the_lr_decay_is_fitted_into_the_planned_run():
-    _, info = unbounded_sphere_scene(n_cams=2, size=8)
-    config = NGPConfig(**{**SMALL.__dict__, "lr_decay_steps": 5000, "schedule_steps": 900})
-    assert NGPModel(config, info).cfg.lr_decay_steps == 900
-    assert NGPModel(SMALL, info).cfg.lr_decay_steps == SMALL.lr_decay_steps  # not planned

@@ -176,14 +176,13 @@ def _march_with_termination_twin(density, first, max_samples):
 
     def march(ids, k):
         ri, t0, t1 = grid.march(
-            o[ids], d[ids], t_min[ids], t_max[ids], AABB, False, step, 0.0, u[ids],
-            k if k > 0 and (max_samples <= 0 or k < max_samples) else max_samples,
+            o[ids], d[ids], t_min[ids], t_max[ids], AABB, False, step, 0.0, u[ids], k
         )  # fmt: skip
         x = scene_to_unit_cube(o[ids][ri] + (0.5 * (t0 + t1))[:, None] * d[ids][ri], AABB, False)
         return ri, t0, t1, x
 
     ids = torch.arange(o.shape[0])
-    ri, t0, t1, x = march(ids, 0)
+    ri, t0, t1, x = march(ids, max_samples)
     keep = terminated_mask(sigma(x), t0, t1, ri, 1e-4)
     got = march_terminated(march, sigma, o.shape[0], 1e-4, first, max_samples)
     for a, b in zip(got[:4], (ri[keep], t0[keep], t1[keep], x[keep])):

@@ -5,8 +5,8 @@ feature and the spherical-harmonic encoding of the view direction, occupancy-gri
 skipping and early ray termination, Adam with eps 1e-15.
 
 A training step: draw a ray batch, march it through the occupancy grid (packed samples, at
-most `max_samples_per_ray` per ray), evaluate the density of all of them, drop those behind
-T < eps, colour and composite the rest through `volrend.volume_render` (on the learned
+most `max_samples_per_ray` per ray), evaluate the density front to back only as far as needed
+to drop those behind T < eps (`march_terminated`), colour and composite the rest through `volrend.volume_render` (on the learned
 environment map for an unbounded capture, `recon.models.background`), MSE, Adam; every
 `occupancy_every` steps the occupancy grid is refreshed from the density. When the scene has
 SfM points the grid starts from the cells around them instead of from every cell.
@@ -39,7 +39,7 @@ from recon.models.raymarch import (
     sample_rays,
     trunc_exp,
 )
-from recon.models.schedules import exp_decay_lr, fit_schedules, set_lr
+from recon.models.schedules import exp_decay_lr, set_lr
 from recon.options import on_off_auto, opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, terminated_mask, volume_render
 from recon.volrend.distortion import distortion_loss
@@ -97,10 +97,6 @@ class NGPConfig:
     lr: float = opt(1e-2, "Adam learning rate (grid and MLPs)")
     lr_final: float = opt(1e-3, "learning rate reached after lr_decay_steps (exponential decay)")
     lr_decay_steps: int = opt(5000, "steps of the learning-rate decay")
-    schedule_steps: int = opt(
-        0,
-        "the run's planned length (recon train sets it from the budget): a longer lr decay is fitted into it (0 = as configured)",
-    )
     weight_decay: float = opt(1e-6, "L2 on the MLP weights (not the grid)")
     chunk: int = opt(
         1024, "rays per chunk when rendering images (1024 keeps the MLP activations in cache)"
@@ -157,10 +153,6 @@ class NGPField(nn.Module):
         return torch.sigmoid(self.color_mlp(torch.cat([geo, dir_enc], -1)))
 
 
-# The lr decays over the whole planned run (`fit_schedules`): a 10-minute CPU run of ~1,000
-# steps would otherwise end at ~0.6 of the initial rate, far from converged.
-SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0}
-
 # Below this fraction of marched samples kept by early termination, a training step evaluates
 # the density without gradients first (`NGPModel._render_rays_train`): with M marched and K kept
 # samples, one pass with gradients costs ~2.6 M forward-passes' worth (forward + backward,
@@ -182,8 +174,7 @@ class NGPModel(Model):
 
     def __init__(self, cfg: NGPConfig, scene: SceneInfo):
         super().__init__()
-        self.cfg = cfg = fit_schedules(cfg, SCHEDULE_FRACTIONS)
-        self.scene = scene
+        self.cfg, self.scene = cfg, scene
         self.register_buffer("aabb", scene.aabb.clone().float())
         self.register_buffer("background", scene.background.clone().float())
         self.field = NGPField(cfg)
@@ -202,7 +193,7 @@ class NGPModel(Model):
         self.disparity_from = diag * cfg.disparity_from if cfg.disparity_from > 0 else math.inf
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
-        self._kept_fraction = 1.0  # of the marched samples, by early termination, last step
+        self._kept_fraction = 1.0  # of the densities evaluated last step, kept by termination
         mlp_params = [*self.field.density_mlp.parameters(), *self.field.color_mlp.parameters()]
         if self.environment is not None:
             mlp_params += list(self.environment.parameters())
@@ -234,13 +225,12 @@ class NGPModel(Model):
 
     def _march_fn(self, origins: Tensor, directions: Tensor, jitter: bool) -> MarchFn:
         """The march of these rays (R,) through the occupied cells as a `MarchFn` (ray ids, k)
-        -> the first k samples of those rays (k <= 0: up to max_samples_per_ray), packed
-        (ray_indices into the ids, t_starts, t_ends, unit-cube midpoints). The jitter is drawn
-        once here, so every call marches the same samples."""
+        -> the first k samples of those rays (k <= 0: all), packed (ray_indices into the ids,
+        t_starts, t_ends, unit-cube midpoints). The jitter is drawn once here, so every call
+        marches the same samples."""
         t_min, t_max = ray_bounds(self.scene, origins, directions)
         u = uniform((origins.shape[0],), t_min, self.generator) if jitter else None
         cone = self.cfg.cone_angle if self.scene.unbounded else 0.0
-        cap = self.cfg.max_samples_per_ray
 
         @torch.no_grad()
         def march(ids: Tensor, k: int):
@@ -255,7 +245,7 @@ class NGPModel(Model):
                 self.step_size,
                 cone,
                 None if u is None else u[ids],
-                k if k > 0 and (cap <= 0 or k < cap) else cap,
+                k,
                 self.disparity_from,
             )
             x = self.to_unit(o[ri] + (0.5 * (t0 + t1))[:, None] * d[ri])
@@ -266,7 +256,7 @@ class NGPModel(Model):
     def _occupied_samples(self, origins: Tensor, directions: Tensor, jitter: bool):
         """Packed samples in occupied cells: (ray_indices, t_starts, t_ends, unit-cube midpoints)."""
         ids = torch.arange(origins.shape[0], device=origins.device)
-        return self._march_fn(origins, directions, jitter)(ids, 0)
+        return self._march_fn(origins, directions, jitter)(ids, self.cfg.max_samples_per_ray)
 
     def _kept_samples(self, origins: Tensor, directions: Tensor, jitter: bool):
         """The occupied samples early termination keeps, the density evaluated without
@@ -298,13 +288,13 @@ class NGPModel(Model):
         (colour and compositing see only the samples with T >= eps).
         -> (VolumeRender, and the rendered packed samples' ray_indices, t_starts, t_ends).
         Two ways to the same samples, values and gradients (the twin in `tests/test_ngp.py`),
-        chosen by the fraction of marched samples the previous step kept: while most survive
+        chosen by the fraction of evaluated densities the previous step kept: while most survive
         (early in training), ONE density pass with gradients over all of them, whose values also
         decide termination; once termination drops many, as Instant-NGP's training kernel does
         (Mueller et al. 2022, sec. 4), a density pass without gradients as far along each ray
         as termination needs (`_kept_samples`) and the field with gradients on the survivors
         alone. On fox after 2,000 steps termination keeps 23 of 335 marched samples per ray
-        and the second way takes a step from 2.4 s to ~0.6 s."""
+        and the second way takes a 2,645-ray step from 2.4 s to 0.2 s."""
         if self._kept_fraction < PREPASS_BELOW_KEPT:
             ri, t0, t1, x, evaluated = self._kept_samples(origins, directions, jitter=True)
             sigma, geo = self.field.geometry(x)
@@ -410,18 +400,11 @@ def build(config: NGPConfig, scene: SceneInfo) -> NGPModel:
     return NGPModel(config, scene)
 
 
-# The working resolution: about 10k rays/s (~2.5k-ray batches of 64k samples at 4.2 steps/s on
-# lego-200, 2 threads). The step plan (the lr decay): 0.41 s a step, as fox-real measured (1,455
-# steps in a 10-minute run; the batch starts at 1k rays and grows as fewer samples per ray
-# survive termination): a plan that undershoots leaves the last steps at lr_final, one that
-# overshoots ends the run before the lr has decayed.
-RESOLUTION = ResolutionPolicy(
-    pixels_per_s=10e3,
-    pixels_per_step=2500,
-    min_epochs=1.0,
-    max_side=800,
-    step_pixels_per_s=6e3,
-)
+# about 10k rays/s (~2.5k-ray batches of 64k samples at 4.2 steps/s on lego-200, 2 threads).
+# The lr decay is not fitted to the planned run (as 3dgs's schedules are): lego-200 lost 0.8 dB
+# with it (31.48 against 32.28 dB at 10 minutes, the decay planned over 1,440 steps, the run
+# made 3,409).
+RESOLUTION = ResolutionPolicy(pixels_per_s=10e3, pixels_per_step=2500, min_epochs=1.0, max_side=800)
 SPEC = register(
     MethodSpec(
         name="ngp", config_cls=NGPConfig, build=build, presets=PRESETS, resolution=RESOLUTION
