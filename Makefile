@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: install test lint demo bench clean
+.PHONY: install test lint demo bench sweep clean
 
 install: $(BIN)/recon
 
@@ -27,6 +27,11 @@ lint: install
 
 demo: install
 	$(MAKE) -C pipelines SCENE=sample METHOD=$(or $(METHOD),plenoxel) BUDGET=$(or $(BUDGET),90) all
+
+# Snakemake over sample_data/ x every method with short budgets (pipelines/config.yaml):
+# results/sweep/table.md and one speed-vs-error plot per scene
+sweep: install
+	$(BIN)/snakemake -s pipelines/Snakefile --configfile pipelines/config.yaml --cores 2
 
 # lego-200 (every method) + sfm on sample/fox, then fox-real (3dgs and ngp on the real capture)
 bench: install

@@ -126,6 +126,28 @@ def test_slow_evaluations_are_capped_to_a_fraction_of_the_run():
     assert st.wall_s > 0.5 * st.elapsed_s  # training, not evaluating, fills the budget
 
 
+def test_a_stale_reserve_is_remeasured_so_the_budget_is_used():
+    """Renders that get 20x cheaper after the first evaluation (as ngp's do once its occupancy
+    grid empties): the 0.4 s reserve measured then is re-measured on one view near the end,
+    and the run trains until ~0.02 s before its 3 s budget instead of stopping 0.4 s early."""
+    cams, imgs = _held(4)
+    renders = []
+    model = SlowEval(0.1, on_render=lambda: renders.append(1))
+
+    def cheaper():
+        renders.append(1)
+        if len(renders) == 4:  # after the first evaluation
+            model.render_s = 0.005
+
+    model.on_render = cheaper
+    st, logs = LoopState(), []
+    cfg = TrainConfig(method="toy", time_budget_s=3.0, eval_every_s=0.01)
+    assert run_loop(model, _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    assert 2.9 <= st.elapsed_s <= 3.1, st.elapsed_s
+    assert len([e for e in logs if "test_psnr" in e]) == 2  # the first and the final one
+    assert len(renders) == 4 + 1 + 4  # first evaluation, one one-view re-measure, final
+
+
 def test_eval_due_worked_example():
     cfg = TrainConfig(method="toy", eval_every_s=30.0, eval_max_fraction=0.1)
     assert not eval_due(cfg, LoopState(wall_s=20.0))

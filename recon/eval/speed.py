@@ -28,6 +28,7 @@ def speed_metrics(run_doc: dict, log: list[dict]) -> dict:
     steps = run_doc.get("steps")
     return {
         "train_wall_s": wall,
+        "time_budget_s": (run_doc.get("train") or {}).get("time_budget_s") or None,
         "steps": steps,
         "steps_per_s": round(steps / wall, 3) if steps and wall else None,
         "time_to_psnr_s": {str(lv): time_to_psnr(curve, lv) for lv in (20, 25, 30)},

@@ -231,8 +231,11 @@ def evaluate(
         results[run] = metrics
         if progress:
             progress("eval", k + 1, len(runs), run=run, psnr=round(metrics["mean"]["psnr"], 2))
-    all_metrics = {r: _load_metrics(ws, r) for r in ws.runs()}
-    write_report(ws, {r: m for r, m in all_metrics.items() if m is not None})
+    # concurrent evaluations of one workspace (a sweep's jobs) write the report one at a time,
+    # each from every metrics.json on disk, so the last one written lists them all
+    with ws.writer_lock("report", wait=True):
+        all_metrics = {r: _load_metrics(ws, r) for r in ws.runs()}
+        write_report(ws, {r: m for r, m in all_metrics.items() if m is not None})
     return results
 
 

@@ -13,6 +13,11 @@ dL/d mu_ndc = dL/d mu_px * (W / 2) does not change (`densify.accumulate`); scree
 compared relative to the image size too. (That holds for structured residuals, what
 densification is for; residuals that are pixel noise cancel less over fewer, larger pixels under
 an L1 loss, so a coarse level can read somewhat higher. The coarse levels are short.)
+
+Off by default (`c2f_factor` 1): on a CPU at a few hundred pixels a side it does not pay at
+equal wall time. On fox at 269 x 478 for 10 minutes the coarse levels saved 34 s over the first
+500 steps, and every later step was ~5 % slower (the Gaussians densified against quarter-size
+targets stay large on screen): the same number of steps in the end and the same quality.
 """
 
 from __future__ import annotations

@@ -164,7 +164,15 @@ PRESETS = {
         "max_gaussians": 200_000,
         "default_steps": 3000,
         "clone_opacity_correction": True,
-        "c2f_factor": 4,
+        # a lower split/clone threshold than the reference's 0.0002: at 0.0002 the count stops
+        # growing long before a CPU run ends (fox: 93 k Gaussians at 10 min, 96 k at 30); with
+        # 0.00015 (bench/results/3dgs_c2f_ab.md, 10 min each) fox keeps 131 k (LPIPS 0.0996
+        # against 0.1053, 32.33 against 32.52 dB; 2 min 27.42 against 27.09 dB) and lego-200
+        # 57 k (33.43 against 33.22 dB, LPIPS 0.0108 against 0.0118)
+        "densify_grad_threshold": 0.00015,
+        # no coarse-to-fine: at equal wall time on fox it saved 34 s over the first 500 steps
+        # and lost them again to larger Gaussians (same steps, 32.48 vs 32.52 dB without;
+        # bench/results/3dgs_c2f_ab.md)
         "appearance": "auto",
     },
 }

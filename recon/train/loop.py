@@ -4,6 +4,13 @@ Two clocks: `wall_s` counts training steps only (the speed-vs-error curve measur
 not our bookkeeping), `elapsed_s` everything the run spends (setup, evaluations, checkpoints).
 The time budget bounds `elapsed_s`, keeping the final evaluation's time in reserve, so
 `recon train --time-budget T` returns after about T seconds.
+
+The reserve is the last evaluation's cost. A model's renders can get much cheaper as it trains
+(ngp on an unbounded capture: the occupancy grid empties and early termination drops most
+samples, a held-out view 22 s early on, 5 s late), and later periodic evaluations may be skipped
+(`eval_due`'s cap), so a reserve measured long ago is re-measured on one held-out view when the
+budget is about to run out (`RESERVE_STALE_FRACTION`): the fox-real ngp runs had stopped ~50 s
+early on the cost of their first evaluation.
 """
 
 from __future__ import annotations
@@ -30,8 +37,9 @@ class LoopState:
     last_eval_wall: float = 0.0  # the first evaluation comes after eval_every_s of training
     last_ckpt_wall: float = 0.0
     elapsed_s: float = 0.0  # wall time of the run so far, evaluations and checkpoints included
-    eval_cost_s: float = 0.0  # how long the last held-out evaluation took
+    eval_cost_s: float = 0.0  # how long the last held-out evaluation took (or a re-measure)
     eval_total_s: float = 0.0  # how long all held-out evaluations took
+    eval_cost_wall: float = 0.0  # wall_s when eval_cost_s was measured
 
 
 @torch.no_grad()
@@ -57,6 +65,9 @@ def heldout_psnr(
     finally:
         model.train(was_training)
     return float(sum(psnrs) / len(psnrs))
+
+
+RESERVE_STALE_FRACTION = 0.1  # re-measure a reserve older than this share of the budget
 
 
 def should_stop(cfg: TrainConfig, st: LoopState) -> str | None:
@@ -99,13 +110,21 @@ def run_loop(
         st.elapsed_s += now - clock
         clock = now
 
-    while (reason := should_stop(cfg, st)) is None:
+    def stop_reason() -> str | None:
+        reason = should_stop(cfg, st)
+        if reason == "time_budget" and held_cams is not None and reserve_stale(cfg, st):
+            _remeasure_reserve(model, held_cams, held_imgs, st, interrupted)
+            tick()
+            reason = should_stop(cfg, st)
+        return reason
+
+    while (reason := stop_reason()) is None:
         if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
             raise KeyboardInterrupt
         if held_cams is not None and eval_due(cfg, st):
             _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
             tick()
-            if (reason := should_stop(cfg, st)) is not None:
+            if (reason := stop_reason()) is not None:
                 break
         t0 = time.perf_counter()
         stats = model.train_step(data, st.step)
@@ -168,12 +187,32 @@ def eval_due(cfg: TrainConfig, st: LoopState) -> bool:
     return spent <= cfg.eval_max_fraction * (st.elapsed_s + st.eval_cost_s)
 
 
+def reserve_stale(cfg: TrainConfig, st: LoopState) -> bool:
+    """The reserve for the final evaluation was measured more than RESERVE_STALE_FRACTION of
+    the budget ago (in training time), and holding it back is what stops the run."""
+    return (
+        st.eval_cost_s > 0
+        and st.wall_s - st.eval_cost_wall > RESERVE_STALE_FRACTION * cfg.time_budget_s
+        and st.elapsed_s < cfg.time_budget_s
+    )
+
+
+def _remeasure_reserve(model, cams, imgs, st: LoopState, interrupted) -> None:
+    """The final evaluation's cost estimated anew: one held-out view's render, times the views
+    (a full evaluation renders each once). Counted in elapsed_s like any evaluation."""
+    t0 = time.perf_counter()
+    heldout_psnr(model, cams[:1], imgs[:1], interrupted)
+    st.eval_cost_s = (time.perf_counter() - t0) * len(cams)
+    st.eval_total_s += time.perf_counter() - t0
+    st.eval_cost_wall = st.wall_s
+
+
 def _evaluate(model, cams, imgs, cfg, st: LoopState, log, interrupted) -> None:
     t0 = time.perf_counter()
     psnr = heldout_psnr(model, cams, imgs, interrupted)
     st.eval_cost_s = time.perf_counter() - t0
     st.eval_total_s += st.eval_cost_s
-    st.last_eval_wall = st.wall_s
+    st.eval_cost_wall = st.last_eval_wall = st.wall_s
     if psnr > st.best_psnr + cfg.min_improvement_db:
         st.best_psnr, st.evals_since_best = psnr, 0
     else:
