@@ -57,7 +57,9 @@ def test_trained_field_beats_its_initial_sphere_and_writes_normals_and_a_preview
     assert b"property float nx" in path.read_bytes()[:2000]  # per-vertex normals in the file
     loaded = trimesh.load(path, process=False)
     # the field's normals agree with the faces' where the surface is smooth
-    agree = (loaded.vertex_normals * trimesh.Trimesh(loaded.vertices, loaded.faces).vertex_normals).sum(-1)
+    agree = (
+        loaded.vertex_normals * trimesh.Trimesh(loaded.vertices, loaded.faces).vertex_normals
+    ).sum(-1)
     assert np.median(agree) > 0.9
     preview = workspace / "runs" / "sdf" / "mesh" / "preview.png"
     assert mesh["preview"] == str(preview) and preview.stat().st_size > 1000

@@ -101,5 +101,7 @@ def test_keep_seen_components_drops_what_no_camera_sees():
     behind[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # turned around: sees nothing
     assert len(keep_seen_components(mesh, K[None], behind[None], size[None]).faces) == 0
     narrow = np.array([[20, 16]])  # a small image: only the big sphere projects inside it
-    kept = keep_seen_components(mesh, np.array([[[50.0, 0, 10], [0, 50, 8], [0, 0, 1]]]), cam_from_world[None], narrow)
+    kept = keep_seen_components(
+        mesh, np.array([[[50.0, 0, 10], [0, 50, 8], [0, 0, 1]]]), cam_from_world[None], narrow
+    )
     assert mesh_stats(kept)["components"] == 1 and len(kept.faces) == 1280

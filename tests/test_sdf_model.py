@@ -38,7 +38,9 @@ def test_starts_as_the_initial_sphere_and_density_is_volsdf_of_the_distance():
     torch.manual_seed(0)
     _, info, _ = sphere_scene(n_cams=2, size=8)
     model = SDFModel(SMALL, info)  # box [-1, 1]^3: half-size 1, initial radius 0.5
-    x = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    x = torch.nn.functional.normalize(
+        torch.randn(64, 3, generator=torch.Generator().manual_seed(0)), dim=-1
+    )
     with torch.no_grad():
         inside, surface, outside = (model.sdf(r * x) for r in (0.2, 0.5, 0.8))
     # the sphere |x| - 0.5 itself (the residual starts at zero)
@@ -47,7 +49,10 @@ def test_starts_as_the_initial_sphere_and_density_is_volsdf_of_the_distance():
     torch.testing.assert_close(outside, torch.full_like(outside, 0.3), rtol=0, atol=1e-5)
     with torch.no_grad():
         torch.testing.assert_close(
-            model.density(0.7 * x), volsdf_density(model.sdf(0.7 * x), model.beta()), rtol=1e-5, atol=0
+            model.density(0.7 * x),
+            volsdf_density(model.sdf(0.7 * x), model.beta()),
+            rtol=1e-5,
+            atol=0,
         )
 
 
@@ -76,7 +81,9 @@ def test_training_fits_the_sphere_surface_and_its_colours():
     assert eval_psnr(model, data) > mean_colour_psnr(data.images) + 8
     # the zero level set is the sphere of radius RADIUS (0.5 of the box: also the initial one,
     # so the check is that training kept it while fitting colour), the gradient its normal
-    x = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+    x = torch.nn.functional.normalize(
+        torch.randn(200, 3, generator=torch.Generator().manual_seed(1)), dim=-1
+    )
     # beta has sharpened from 0.1, and the level set is within half a pixel's footprint of the
     # sphere (2.5 units away at f = 28.8 px a pixel spans 0.087: 24 px images cannot place a
     # surface better than that)
@@ -95,7 +102,9 @@ def test_training_moves_the_surface_to_a_smaller_sphere():
     data, info, _ = sphere_scene(n_cams=8, size=24)
     info = type(info)(**{**info.__dict__, "aabb": 1.6 * info.aabb})
     model = SDFModel(SMALL, info)
-    x = torch.nn.functional.normalize(torch.randn(200, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+    x = torch.nn.functional.normalize(
+        torch.randn(200, 3, generator=torch.Generator().manual_seed(1)), dim=-1
+    )
     with torch.no_grad():
         before = model.sdf(RADIUS * x).abs().mean().item()
     for step in range(300):

@@ -56,7 +56,7 @@ class SDFField(nn.Module):
     def geometric_init(self, radius: float) -> None:
         self.radius = radius
         for i, layer in enumerate(self.layers):
-            out_dim, in_dim = layer.weight.shape
+            out_dim = layer.weight.shape[0]
             if i == len(self.layers) - 1:
                 layer.weight.normal_(0.0, 1e-4)
                 layer.weight[0].zero_()  # the residual starts at zero: f is the sphere

@@ -48,9 +48,10 @@ def shaded_view(
         torch.arange(width, dtype=torch.float64) + 0.5,
         indexing="ij",
     )
-    rays = torch.stack([u, v, torch.ones_like(u)], -1) @ torch.linalg.inv(
-        torch.as_tensor(np.asarray(K, np.float64))
-    ).T
+    rays = (
+        torch.stack([u, v, torch.ones_like(u)], -1)
+        @ torch.linalg.inv(torch.as_tensor(np.asarray(K, np.float64))).T
+    )
     view = torch.nn.functional.normalize(rays @ c2w[:3, :3], dim=-1)
     shade = AMBIENT + (1 - AMBIENT) * (n * view).sum(-1).abs()
     hit = frag.mask.numpy()

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from recon.io.images import write_png
 from recon.mesh.cleanup import (
     keep_seen_components,
     mesh_stats,
@@ -26,7 +27,6 @@ from recon.mesh.marching_cubes import (
     extract_density_mesh,
     soft_field_threshold,
 )
-from recon.io.images import write_png
 from recon.mesh.preview import shaded_view
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
 from recon.models.registry import pick_device

@@ -322,9 +322,7 @@ def build(config: SDFConfig, scene: SceneInfo) -> SDFModel:
 
 # Rays per second on a 2-thread CPU: about half of ngp's (the gradient of the field is a
 # second backward pass), to be measured.
-RESOLUTION = ResolutionPolicy(
-    pixels_per_s=4e3, pixels_per_step=1024, min_epochs=1.0, max_side=800
-)
+RESOLUTION = ResolutionPolicy(pixels_per_s=4e3, pixels_per_step=1024, min_epochs=1.0, max_side=800)
 SPEC = register(
     MethodSpec(
         name="sdf", config_cls=SDFConfig, build=build, presets=PRESETS, resolution=RESOLUTION
