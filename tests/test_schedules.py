@@ -47,8 +47,7 @@ def test_fit_schedules_worked_example():
         lr_decay_steps: int = 5000
         densify_stop: int = 2000
 
-    windows = {"lr_decay_steps": (1.0, 1.0), "densify_stop": (0.5, 0.7)}
-    assert fit_schedules(Toy(), windows) == Toy(1600, 1600, 1120)  # shortened
-    assert fit_schedules(Toy(schedule_steps=3600), windows) == Toy(3600, 3600, 2000)  # inside
-    assert fit_schedules(Toy(schedule_steps=6400), windows) == Toy(6400, 6400, 3200)  # stretched
-    assert fit_schedules(Toy(schedule_steps=0), windows) == Toy(0)  # not planned
+    fractions = {"lr_decay_steps": 1.0, "densify_stop": 0.7}
+    assert fit_schedules(Toy(), fractions) == Toy(1600, 1600, 1120)
+    assert fit_schedules(Toy(schedule_steps=0), fractions) == Toy(0)  # not planned
+    assert fit_schedules(Toy(schedule_steps=9000), fractions) == Toy(9000)  # long enough

@@ -26,22 +26,18 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float, group: str | None = None
             g["lr"] = lr
 
 
-def fit_schedules(config: C, windows: dict[str, tuple[float, float]]) -> C:
-    """The config with every step schedule named in `windows` moved into its window of the
-    planned run (`config.schedule_steps`, 0 = not planned): a schedule that ends after
-    `latest x plan` is shortened to it, one that ends before `earliest x plan` is stretched to
-    it, one inside the window is kept. A 10-minute CPU run of ~2,000 steps decays its learning
-    rate (and stops densifying) in time, where a reference's 30,000-step schedule would end it
-    mid-way at a high learning rate; a 30-minute run keeps densifying for its first half instead
-    of spending two thirds of its steps on a frozen set of Gaussians. Example: windows
-    {"lr_decay_steps": (1.0, 1.0), "densify_stop": (0.5, 0.7)}, lr_decay_steps 5,000 and
-    densify_stop 2,000 -> (1,600, 1,120) for a 1,600-step plan, (3,600, 2,000) for 3,600 steps
-    and (6,400, 3,200) for 6,400 steps."""
+def fit_schedules(config: C, fractions: dict[str, float]) -> C:
+    """The config with every step schedule named in `fractions` that outlasts the planned run
+    (`config.schedule_steps`, 0 = not planned) shortened to end at its fraction of it: a
+    10-minute CPU run of ~2,000 steps decays its learning rate (and stops densifying) in time,
+    where a reference's 30,000-step schedule would end it mid-way at a high learning rate. Runs
+    at least as long as the schedules keep them unchanged. Example: schedule_steps 1,600,
+    {"lr_decay_steps": 1.0, "densify_stop": 0.7}, lr_decay_steps 5,000 and densify_stop 2,000
+    -> 1,600 and 1,120."""
     if config.schedule_steps <= 0:
         return config
-    plan = config.schedule_steps
-    fitted = {}
-    for name, (earliest, latest) in windows.items():
-        low, high = max(1, round(earliest * plan)), max(1, round(latest * plan))
-        fitted[name] = min(max(getattr(config, name), low), high)
+    fitted = {
+        name: min(getattr(config, name), max(1, round(fraction * config.schedule_steps)))
+        for name, fraction in fractions.items()
+    }
     return replace(config, **fitted)

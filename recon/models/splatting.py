@@ -53,21 +53,18 @@ from recon.models.schedules import exp_decay_lr, fit_schedules, set_lr
 from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
-# Where in a run of `schedule_steps` steps each step schedule ends (`fit_schedules`: the
-# earliest and latest fraction of the plan). With the fast preset and a 1,600-step plan:
-# lr_decay_steps 1,600, densify_stop 1,120, opacity_reset_interval 560, sh_degree_interval 320.
-# Measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
+# How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
+# with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
+# opacity_reset_interval 560, sh_degree_interval 320.
+# measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
 # until 0.7 of the run with the means lr decayed over the whole run beats the lego-tuned steps
 # (30.66 against 29.38 dB) and shrinking everything by the same factor (30.51 dB, far fewer
-# Gaussians, LPIPS 0.160 against 0.140). Long runs densify for at least their first half (the
-# reference's 15,000 of 30,000 steps) and decay the means lr over all of their steps: with the
-# preset's 2,000 / 5,000, a 30-minute fox run (6,092 steps) froze its 140 k Gaussians at step
-# 2,000 and held its final lr for its last 1,000 steps.
-SCHEDULE_WINDOWS = {
-    "lr_decay_steps": (1.0, 1.0),
-    "densify_stop": (0.5, 0.7),
-    "opacity_reset_interval": (0.0, 0.35),
-    "sh_degree_interval": (0.0, 0.2),
+# Gaussians, LPIPS 0.160 against 0.140).
+SCHEDULE_FRACTIONS = {
+    "lr_decay_steps": 1.0,
+    "densify_stop": 0.7,
+    "opacity_reset_interval": 0.35,
+    "sh_degree_interval": 0.2,
 }
 
 
@@ -253,7 +250,7 @@ class GaussianModel(Model):
 
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()
-        self.config = config = fit_schedules(config, SCHEDULE_WINDOWS)
+        self.config = config = fit_schedules(config, SCHEDULE_FRACTIONS)
         self.strategy = densify_strategy(config)
         self.register_buffer("background", scene.background.float().clone())
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
