@@ -146,6 +146,7 @@ def test_forced_rerun_that_fails_keeps_the_old_run(trained):
 
 def test_3dgs_train_render_and_splat_export(trained):
     from recon.gaussians.ply import read_splat_ply
+    from recon.gaussians.splat_formats import read_compressed_ply, read_dot_splat
 
     recon_cli(
         "train",
@@ -169,6 +170,21 @@ def test_3dgs_train_render_and_splat_export(trained):
     assert np.abs(means).max() < 3.0
     proc = recon_cli("export", "-w", str(trained), "--run", "plenoxel", check=False)
     assert proc.returncode != 0 and "3dgs" in proc.stderr
+    # the compact formats: the same Gaussians, read back as the viewers decode them
+    G = out["gaussians"]
+    for fmt, reader, size in (
+        ("splat", read_dot_splat, 32 * G),
+        ("compressed-ply", read_compressed_ply, None),
+    ):
+        args = ("export", "-w", str(trained), "--run", "3dgs", "--format", fmt, "--json")
+        done = json.loads(recon_cli(*args, "--sh-degree", "0").stdout)
+        back = reader(done["path"])
+        assert len(back["means"]) == G and done["sh_degree"] == 0
+        assert np.allclose(np.sort(back["means"][:, 0]), np.sort(means[:, 0]), atol=0.02)
+        if size is not None:
+            assert done["bytes"] == size
+    bad = recon_cli("export", "-w", str(trained), "--run", "3dgs", "--sh-degree", "4", check=False)
+    assert bad.returncode == 2 and "sh-degree" in bad.stderr
     # the exported file seeds a new run through the CLI flag (round trip of the PLY format)
     recon_cli(
         "train",
