@@ -2,6 +2,7 @@
 sfm (pose import) -> train -> render -> mesh -> eval, and resume / bad-run handling."""
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +94,38 @@ def test_mesh_and_eval_against_ground_truth(trained):
     assert "depth_abs_rel" in res["mean"]
     assert res["speed"]["steps"] == 150
     assert (trained / "report.md").exists() and (trained / "speed_vs_error.png").stat().st_size > 0
+
+
+def test_report_html_shows_the_runs_and_opens_in_a_browser(trained, tmp_path):
+    """After render (an orbit video), mesh and eval: report.html links only files that exist,
+    shows every held-out view four ways and the mesh previews, and a real headless browser
+    loads it with no console error, no broken image and a playable video."""
+    recon_cli(
+        "render", "-w", str(trained), "--run", "plenoxel", "--path", "orbit", "--frames", "6",
+        "--video",
+    )  # fmt: skip
+    recon_cli("eval", "-w", str(trained), "--run", "plenoxel")
+    page = trained / "report.html"
+    text = page.read_text()
+    links = re.findall(r'(?:src|href)="([^"#]+)"', text)
+    assert links and all((trained / link).is_file() for link in links), links
+    metrics = json.loads((trained / "runs" / "plenoxel" / "eval" / "metrics.json").read_text())
+    views = metrics["pictures"]
+    assert views and set(views) == set(metrics["per_view"])
+    for kinds in views.values():
+        for kind in ("gt", "render", "error", "depth"):
+            assert f'src="runs/plenoxel/eval/views/{kinds[kind]["thumb"]}"' in text
+    mesh = json.loads((trained / "runs" / "plenoxel" / "mesh" / "mesh.json").read_text())
+    assert len(mesh["previews"]) == 3 and "mesh/preview_0.png" in text
+    assert "video.mp4" in text and "sfm_cameras.png" in text
+
+    from tests.browser import open_page
+
+    shot = tmp_path / "report.png"
+    seen = open_page(page, shot)
+    assert seen["images"] >= 4 * len(views) + 5, seen
+    assert seen["errors"] == [] and seen["broken"] == [] and seen["bad_videos"] == [], seen
+    assert shot.stat().st_size > 10_000
 
 
 def test_existing_run_is_refused_and_resume_continues(trained):

@@ -13,16 +13,18 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from recon.io.images import write_png
 from recon.mesh.cleanup import mesh_stats, remove_small_components, transform_mesh, write_mesh
 from recon.mesh.marching_cubes import (
     choose_density_threshold,
     extract_density_mesh,
     soft_field_threshold,
 )
+from recon.mesh.preview import preview_views, shade_mesh
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
 from recon.models.registry import pick_device
 from recon.options import opt
-from recon.train.resolution import trained_resolution
+from recon.train.resolution import downscale_for_max_side, trained_resolution
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 from recon.workspace.runs import load_run
 
@@ -48,6 +50,8 @@ class MeshConfig:
     truncation: float = opt(0.02, "TSDF truncation as a fraction of the box's longest side")
     min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
     format: str = opt("ply", "mesh file format", choices=("ply", "obj", "glb"))
+    previews: int = opt(3, "shaded pictures of the mesh from this many training cameras")
+    preview_max_side: int = opt(320, "longer side of the preview pictures (px)")
     device: str = opt(
         "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
     )
@@ -121,6 +125,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         raise WorkspaceError(f"the {method} mesh of run '{run}' is empty: is the run trained?")
     raw_faces = len(mesh.faces)
     mesh = remove_small_components(mesh, cfg.min_component)
+    previews = write_previews(ws, run, mesh, scene, cfg)
     sim = (
         scene.scene_from_world
     )  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
@@ -135,6 +140,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         "faces_before_cleanup": raw_faces,
         **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
         "seconds": round(time.time() - started, 2),
+        "previews": previews,
         **detail,
     }
     atomic_write_json(ws.mesh_json(run), result)
@@ -149,6 +155,35 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         extra={"faces": result.get("faces")},
     )
     return result
+
+
+def write_previews(ws: Workspace, run: str, mesh, scene, cfg: MeshConfig) -> list[str]:
+    """Shaded pictures of `mesh` (in the scene frame, as the cameras) from `cfg.previews`
+    training cameras, at most `cfg.preview_max_side` px -> mesh/preview_<k>.png; the names."""
+    idx = scene.split("train")
+    picks = [idx[k] for k in preview_views(len(idx), cfg.previews)]
+    if not picks:
+        return []
+    k = downscale_for_max_side(*scene.image_size("train"), cfg.preview_max_side)
+    cams = scene.cameras(picks, "cpu", k)
+    colours = None
+    if getattr(mesh.visual, "kind", None) == "vertex":
+        colours = np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0
+    names = []
+    for j in range(len(picks)):
+        image, _ = shade_mesh(
+            np.asarray(mesh.vertices),
+            np.asarray(mesh.faces),
+            cams.K[j].numpy(),
+            cams.cam_from_world[j].numpy(),
+            int(cams.width[j]),
+            int(cams.height[j]),
+            colours,
+        )
+        name = f"preview_{j}.png"
+        write_png(ws.mesh_dir(run) / name, image)
+        names.append(name)
+    return names
 
 
 def read_mesh_json(ws: Workspace, run: str) -> dict | None:
