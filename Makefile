@@ -39,7 +39,7 @@ lint: install
 # the product at its best on the project's own scene: sfm from its photos, 3dgs, an orbit video,
 # a mesh, eval against the known poses and mesh -> workspaces/sample-photos/report.html
 demo: install
-	$(MAKE) -C pipelines SCENE=sample-photos METHOD=$(or $(METHOD),3dgs) BUDGET=$(or $(BUDGET),90) FRAMES=60 all
+	$(MAKE) -C pipelines SCENE=sample-photos METHOD=$(or $(METHOD),3dgs) BUDGET=$(or $(BUDGET),120) FRAMES=60 all
 
 # Snakemake over sample_data/ x every method with short budgets (pipelines/config.yaml):
 # results/sweep/table.md and one speed-vs-error plot per scene
