@@ -63,4 +63,6 @@ def command(workspace, runs, force, as_json, **options):
             f"eval: {run} at {w}x{h}: PSNR {mean['psnr']:.2f} dB (border {mean['psnr_border']:.2f}), "
             f"SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}"
         )
-    click.echo(f"report: {ws.report_html} (terminal: {ws.report_md.name}, plot: {ws.speed_plot.name})")
+    click.echo(
+        f"report: {ws.report_html} (terminal: {ws.report_md.name}, plot: {ws.speed_plot.name})"
+    )
