@@ -21,6 +21,8 @@ from recon.workspace import Workspace
 @config_option(MeshConfig, "truncation")
 @config_option(MeshConfig, "min_component")
 @config_option(MeshConfig, "format")
+@config_option(MeshConfig, "previews", type=click.IntRange(0))
+@config_option(MeshConfig, "preview_max_side", type=click.IntRange(16))
 @config_option(MeshConfig, "device")
 @click.option("--force", is_flag=True, help="Mesh even if the run is stale.")
 @json_option
