@@ -79,6 +79,26 @@ def test_render_writes_png_and_metric_depth(trained):
         "--video",
     )
     assert (trained / "runs" / "plenoxel" / "renders" / "orbit" / "video.mp4").stat().st_size > 0
+    # above the training size: --scale 2 renders every 2nd view at twice the side, and its
+    # metric depth agrees with the 1x render's (area-downsampled) where both see the sphere
+    big = json.loads(
+        recon_cli(
+            "render", "-w", str(trained), "--run", "plenoxel", "--scale", "2", "--every", "2",
+            "--json",
+        ).stdout
+    )  # fmt: skip
+    assert big["frames"] == 2 and big["resolution"] == [
+        2 * out["resolution"][0],
+        2 * out["resolution"][1],
+    ]
+    assert big["out"].endswith("renders/test-x2")  # the 1x renders stay
+    big_depth = read_depth_exr(Path(big["out"]) / "depth" / "r_0.exr")
+    assert big_depth.shape == (2 * depth.shape[0], 2 * depth.shape[1])
+    small = big_depth.reshape(depth.shape[0], 2, depth.shape[1], 2).mean((1, 3))
+    inside = (depth > 0) & (big_depth.reshape(depth.shape[0], 2, depth.shape[1], 2) > 0).all((1, 3))
+    assert inside.sum() > 50 and np.median(np.abs(small[inside] - depth[inside])) < 0.02
+    bad = recon_cli("render", "-w", str(trained), "--run", "plenoxel", "--scale", "0", check=False)
+    assert bad.returncode == 2 and "--scale" in bad.stderr
 
 
 def test_mesh_and_eval_against_ground_truth(trained):
