@@ -46,9 +46,11 @@ demo: install
 sweep: install
 	$(BIN)/snakemake -s pipelines/Snakefile --configfile pipelines/config.yaml --cores 2
 
-# lego-200 (every method) + sfm on sample/fox, then fox-real (3dgs and ngp on the real capture)
+# lego-200 (every method) + sfm on sample/fox, render throughput of those lego-200 runs (200 and
+# 800 px), then fox-real (3dgs and ngp on the real capture)
 bench: install
 	$(BIN)/python pipelines/bench.py
+	$(BIN)/python pipelines/bench_render.py
 	$(BIN)/python pipelines/bench_real.py
 
 clean:
