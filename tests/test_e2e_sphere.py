@@ -138,6 +138,7 @@ def test_report_html_shows_the_runs_and_opens_in_a_browser(trained, tmp_path):
     mesh = json.loads((trained / "runs" / "plenoxel" / "mesh" / "mesh.json").read_text())
     assert len(mesh["previews"]) == 3 and "mesh/preview_0.png" in text
     assert "video.mp4" in text and "sfm_cameras.png" in text
+    assert "15 registered photos</summary>" in text and "r_0 (test)" in text
 
     from tests.browser import open_page
 

@@ -76,6 +76,12 @@ def sfm_section(ws: Workspace) -> str:
             f"photos registered (below {registration['min_registered']:g}); commonest reason: "
             f"{esc(registration['commonest_reason'])} ({registration['commonest_reason_count']} photos).</p>"
         )
+    if ws.cameras_json.exists():
+        frames = json.loads(ws.cameras_json.read_text()).get("frames", [])
+        names = ", ".join(f"{esc(f['name'])} ({esc(f['split'])})" for f in frames)
+        parts.append(
+            f"<details><summary>{len(frames)} registered photos</summary><p>{names}</p></details>"
+        )
     left_out = [(u["name"], u["reason"]) for u in r.get("unregistered", [])]
     left_out += [(s["name"], "skipped: " + s["reason"]) for s in r.get("skipped", [])]
     if left_out:
