@@ -16,8 +16,8 @@ import torch
 from torch import Tensor
 
 from recon.cameras import Cameras
-from recon.gaussians.render import project_splats
 from recon.gaussians.rasterize import rasterize_features
+from recon.gaussians.render import project_splats
 
 
 def view_contributions(
