@@ -1,13 +1,16 @@
 """Blending-weight contributions: the identity sum_i C_i = sum_p (1 - T_final), the dense
 reference twin, the lowest-fraction rule, and pruning at the end of densification in the model."""
 
+import dataclasses
+
+import pytest
 import torch
 
 from recon.gaussians.contribution import contributions, least_contributing, view_contributions
 from recon.gaussians.rasterize import rasterize_features
 from recon.gaussians.rasterize_reference import rasterize_features_reference
 from recon.gaussians.render import project_splats
-from recon.models.splatting import GaussianModel
+from recon.models.splatting import GaussianModel, prune_fraction
 from tests.test_gaussians_model import config, synthetic_scene
 from tests.test_gaussians_rasterize import random_splats
 
@@ -67,3 +70,14 @@ def test_pruning_when_densification_ends_halves_the_count_and_keeps_training():
         p = group["params"][0]
         if p in model.optimizer.state:
             assert model.optimizer.state[p]["exp_avg"].shape == p.shape
+
+
+def test_auto_prunes_bounded_scenes_only_and_bad_fractions_are_refused():
+    scene, _ = synthetic_scene()
+    assert prune_fraction(config(), scene) == 0.5
+    unbounded = dataclasses.replace(scene, unbounded=True)
+    assert prune_fraction(config(), unbounded) == 0.0
+    assert prune_fraction(config(prune_contribution=0.3), unbounded) == 0.3
+    for bad in (1.0, -0.5):
+        with pytest.raises(ValueError, match="prune_contribution"):
+            GaussianModel(config(prune_contribution=bad), scene)
