@@ -81,3 +81,10 @@ def test_auto_prunes_bounded_scenes_only_and_bad_fractions_are_refused():
     for bad in (1.0, -0.5):
         with pytest.raises(ValueError, match="prune_contribution"):
             GaussianModel(config(prune_contribution=bad), scene)
+
+
+def test_no_pruning_in_a_run_too_short_to_densify():
+    scene, data = synthetic_scene()
+    model = GaussianModel(config(densify_start=20, densify_stop=10), scene)
+    counts = [model.train_step(data, step)["num_gaussians"] for step in range(12)]
+    assert counts[-1] == counts[0]

@@ -376,7 +376,9 @@ class GaussianModel(Model):
             self._appearance_step()
         with record_function("3dgs.densify"):
             self._densify(splats, step, extent)
-            if step + 1 == self.strategy.stop and self.prune_fraction > 0:
+            # only where densification ran (not in a run too short to densify)
+            ending = step + 1 == self.strategy.stop > self.strategy.start
+            if ending and self.prune_fraction > 0:
                 self._prune_by_contribution(data)
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
