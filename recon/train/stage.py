@@ -326,6 +326,11 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
             signal.signal(sig, handler)
     checkpoint(st)
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
+    t_finish = time.perf_counter()
+    finished = model.finish(data)
+    if finished:  # a last clean-up of the model (`Model.finish`), outside the time budget
+        finished["finish_s"] = round(time.perf_counter() - t_finish, 2)
+        log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "finish", **finished})
     log_file.close()
     save_model(ws.model_path(run), spec.name, asdict(method_cfg), model)
     summary = {
