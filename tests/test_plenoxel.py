@@ -47,18 +47,26 @@ def test_grid_prune_and_upsample_preserve_the_field():
     assert torch.all(grid.links[grid.coords[b]] == b)
 
 
+def sphere_config(**overrides):
+    """A small lattice for `sphere_scene` (16^3, then 32^3 from step 60)."""
+    return PlenoxelConfig(
+        **{
+            "resolutions": (16, 32),
+            "upsample_steps": (60,),
+            "rays_per_batch": 1024,
+            "lr_decay_steps": 1000,
+            "samples_per_batch": 1 << 15,
+            "occupancy_res": 16,
+            "chunk": 4096,
+            **overrides,
+        }
+    )
+
+
 def test_plenoxel_learns_a_sphere():
     torch.manual_seed(0)
     data, info = sphere_scene()
-    cfg = PlenoxelConfig(
-        resolutions=(16, 32),
-        upsample_steps=(60,),
-        rays_per_batch=1024,
-        lr_decay_steps=1000,
-        samples_per_batch=1 << 15,
-        occupancy_res=16,
-        chunk=4096,
-    )
+    cfg = sphere_config()
     model = PlenoxelModel(cfg, info)
     baseline = 10 * math.log10(1 / data.images.var(dim=(0, 1, 2)).mean().item())
     losses = [model.train_step(data, s)["loss"] for s in range(120)]
@@ -78,17 +86,7 @@ def test_plenoxel_learns_a_sphere():
 def trained_sphere(steps=120, **overrides):
     torch.manual_seed(0)
     data, info = sphere_scene()
-    cfg = PlenoxelConfig(
-        resolutions=(16, 32),
-        upsample_steps=(60,),
-        rays_per_batch=1024,
-        lr_decay_steps=1000,
-        samples_per_batch=1 << 15,
-        occupancy_res=16,
-        chunk=4096,
-        **overrides,
-    )
-    model = PlenoxelModel(cfg, info)
+    model = PlenoxelModel(sphere_config(**overrides), info)
     for s in range(steps):
         model.train_step(data, s)
     return model, data
