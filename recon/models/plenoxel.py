@@ -198,14 +198,8 @@ class PlenoxelModel(Model):
         rays = data.rays()
         pick = lambda t: t.reshape(C, H, W, 3)[:, ::s, ::s].reshape(-1, 3)
         best = self.vertex_weights(pick(rays["origins"]), pick(rays["directions"]))
-        seen = torch.zeros(self.res**3, device=best.device)
-        seen[self.grid.coords] = (best >= self.cfg.finish_weight).float()
-        near = F.max_pool3d(seen.view(1, 1, *(self.res,) * 3), 3, stride=1, padding=1)
-        keep = near.reshape(-1)[self.grid.coords] > 0
         before = self.grid.num_rows
-        if int(keep.sum()) >= 8:
-            self.grid.prune(keep)
-            self._make_optimizer()
+        self._prune_neighbourhood((best >= self.cfg.finish_weight).float(), 0.0)
         return {"finish_rows_before": float(before), "finish_rows_after": float(self.grid.num_rows)}
 
     # ---- training ------------------------------------------------------------------------
@@ -256,10 +250,18 @@ class PlenoxelModel(Model):
     @torch.no_grad()
     def prune(self) -> None:
         """Drop vertices whose 3x3x3 neighbourhood has density below `prune_density`."""
-        dens = F.relu(self.grid.dense("density")[..., 0])
-        near = F.max_pool3d(dens[None, None], 3, stride=1, padding=1)[0, 0].reshape(-1)
-        keep = near[self.grid.coords] > self.cfg.prune_density
-        if keep.sum() >= 8:
+        density = F.relu(self.grid.data["density"].detach()[:, 0])
+        self._prune_neighbourhood(density, self.cfg.prune_density)
+
+    @torch.no_grad()
+    def _prune_neighbourhood(self, value: Tensor, threshold: float) -> None:
+        """Keep the rows whose 3x3x3 vertex neighbourhood holds a `value` (M,) above
+        `threshold` (unlinked vertices count as 0); at least 8 rows stay."""
+        dense = torch.zeros(self.res**3, device=value.device, dtype=value.dtype)
+        dense[self.grid.coords] = value
+        near = F.max_pool3d(dense.view(1, 1, *(self.res,) * 3), 3, stride=1, padding=1)
+        keep = near.reshape(-1)[self.grid.coords] > threshold
+        if int(keep.sum()) >= 8:
             self.grid.prune(keep)
             self._make_optimizer()
 
