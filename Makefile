@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: install test lint demo bench sweep clean
+.PHONY: install test lint demo bench sweep browser clean
 
 install: $(BIN)/recon
 
@@ -19,23 +19,38 @@ $(BIN)/recon: pyproject.toml
 test: lint
 	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile tests
 
+# Debian's chromium + chromedriver for the report.html browser test (skipped, with the reason,
+# where they are missing); needs root or sudo, as CI has
+browser:
+	@if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then \
+		echo "chromium and chromedriver present"; \
+	else \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium chromium-driver >/dev/null; \
+	fi
+
 # ruff (lint and format), and the layer order of pyproject.toml's import-linter contract
 lint: install
 	$(BIN)/ruff check recon tests pipelines
 	$(BIN)/ruff format --check recon tests pipelines
 	$(BIN)/lint-imports
 
+# the product at its best on the project's own scene: sfm from its photos, 3dgs, an orbit video,
+# a mesh, eval against the known poses and mesh -> workspaces/sample-photos/report.html
 demo: install
-	$(MAKE) -C pipelines SCENE=sample METHOD=$(or $(METHOD),plenoxel) BUDGET=$(or $(BUDGET),90) all
+	$(MAKE) -C pipelines SCENE=sample-photos METHOD=$(or $(METHOD),3dgs) BUDGET=$(or $(BUDGET),120) FRAMES=60 all
 
 # Snakemake over sample_data/ x every method with short budgets (pipelines/config.yaml):
 # results/sweep/table.md and one speed-vs-error plot per scene
 sweep: install
 	$(BIN)/snakemake -s pipelines/Snakefile --configfile pipelines/config.yaml --cores 2
 
-# lego-200 (every method) + sfm on sample/fox, then fox-real (3dgs and ngp on the real capture)
+# lego-200 (every method) + sfm on sample/fox, render throughput of those lego-200 runs (200 and
+# 800 px), then fox-real (3dgs and ngp on the real capture)
 bench: install
 	$(BIN)/python pipelines/bench.py
+	$(BIN)/python pipelines/bench_render.py
 	$(BIN)/python pipelines/bench_real.py
 
 clean:

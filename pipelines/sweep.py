@@ -7,7 +7,7 @@ No stage logic lives here: every job is one `recon` command, as in `pipelines/Ma
 
 from __future__ import annotations
 
-import json
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,11 +103,10 @@ def run_name(method: str, budget: int) -> str:
 # the working resolution), fitted to measured runs on 2 CPU threads (bench/results/): 3dgs on fox
 # 675 MB at 1.5 M training pixels and 1,000 MB at 13.2 M; ngp 1,289 MB at 1.2 M and 2,190 MB at
 # 13.2 M; lego-200 (4 M pixels) plenoxel 4.0 GB (its dense grid), nerf 2.1 GB. The scheduler is
-# asked for HEADROOM x that.
+# asked for HEADROOM x that; a method without a measurement gets the largest figure.
 TRAIN_MEMORY_MB = {  # method: (base MB, bytes per training pixel)
     "3dgs": (640.0, 28.0),
     "ngp": (1200.0, 75.0),
-    "sdf": (1200.0, 75.0),
     "nerf": (1800.0, 75.0),
     "plenoxel": (3800.0, 75.0),
 }
@@ -166,10 +165,8 @@ def sfm_runtime_min(photos: int) -> int:
     return 10 + math.ceil(3 * (photos / 67) ** 2)
 
 
+@functools.cache  # asked by every job's resources; the folder is walked once per Snakemake run
 def photo_count(scene: SceneSpec) -> int:
-    images = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp", ".webp"}
-    return max(1, sum(Path(f).suffix.lower() in images for f in source_files(scene)))
+    from recon.sfm.sources import IMAGE_SUFFIXES
 
-
-def read_json(path: str | Path) -> dict:
-    return json.loads(Path(path).read_text())
+    return max(1, sum(Path(f).suffix.lower() in IMAGE_SUFFIXES for f in source_files(scene)))

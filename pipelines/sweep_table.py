@@ -97,22 +97,30 @@ def markdown(rows: list[dict]) -> str:
     return "# recon sweep\n\n" + head + body
 
 
-def plot_scene(rows: list[dict], scene: str, path: Path) -> None:
-    """Held-out PSNR against training wall time, one line per method over its budgets."""
+def plot_scene(rows: list[dict], scene: str, path: Path, workspace: Path | None = None) -> None:
+    """Held-out PSNR against training wall time: per method, the final evaluations of its runs
+    (markers, joined over the budgets), and behind them each run's PSNR as logged during
+    training (a few held-out views at low resolution; from the workspace's runs/RUN/log.jsonl
+    when `workspace` is given)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from recon.eval.speed import psnr_curve, read_log
+
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     for method in sorted({r["method"] for r in rows if r["scene"] == scene}):
+        runs = [r for r in rows if r["scene"] == scene and r["method"] == method]
         pts = sorted(
-            (r["train_wall_s"], r["psnr"])
-            for r in rows
-            if r["scene"] == scene and r["method"] == method and r["train_wall_s"] and r["psnr"]
+            (r["train_wall_s"], r["psnr"]) for r in runs if r["train_wall_s"] and r["psnr"]
         )
-        if pts:
-            ax.plot(*zip(*pts), marker="o", label=method)
+        (line,) = ax.plot(*zip(*pts), marker="o", label=method) if pts else ax.plot([], [])
+        for r in runs if workspace is not None else []:
+            log = workspace / "runs" / r["run"] / "log.jsonl"
+            curve = [(t, p) for t, p in psnr_curve(read_log(log)) if t > 0] if log.exists() else []
+            if curve:
+                ax.plot(*zip(*curve), lw=0.8, alpha=0.5, color=line.get_color())
     ax.set_xscale("log")
     ax.set_xlabel("training wall time (s, log scale)")
     ax.set_ylabel("held-out PSNR (dB)")
@@ -126,14 +134,20 @@ def plot_scene(rows: list[dict], scene: str, path: Path) -> None:
 
 @click.command()
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True)
+@click.option(
+    "--workspaces",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="The folder of the scenes' workspaces (<scene>/): the plots add each run's logged curve.",
+)
 @click.argument("evals", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
-def main(out: Path, evals: tuple[Path, ...]) -> None:
+def main(out: Path, workspaces: Path | None, evals: tuple[Path, ...]) -> None:
     out.mkdir(parents=True, exist_ok=True)
     rows = gather(list(evals))
     write_csv(rows, out / "table.csv")
     (out / "table.md").write_text(markdown(rows))
     for scene in sorted({r["scene"] for r in rows}):
-        plot_scene(rows, scene, out / f"{scene}_speed_vs_error.png")
+        ws = workspaces / scene if workspaces is not None else None
+        plot_scene(rows, scene, out / f"{scene}_speed_vs_error.png", ws)
     click.echo(f"{len(rows)} runs -> {out / 'table.md'}")
 
 

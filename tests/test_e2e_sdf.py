@@ -1,6 +1,6 @@
 """`recon train --method sdf` through the real CLI on sample_data (ground-truth mesh): a short
 run's zero-level-set mesh beats the untrained field's sphere on F-score, carries the field's
-normals, and `recon mesh --preview` writes a picture of it."""
+normals, and `recon mesh` writes pictures of it."""
 
 import json
 
@@ -49,7 +49,7 @@ def test_trained_field_beats_its_initial_sphere_and_writes_normals_and_a_preview
     import trimesh
 
     _, sphere = mesh_and_fscore(workspace, "sphere")
-    mesh, trained = mesh_and_fscore(workspace, "sdf", "--preview")
+    mesh, trained = mesh_and_fscore(workspace, "sdf")
     assert mesh["level"] == "sdf = 0" and mesh["faces"] > 500
     assert trained["status"] == "ok" and sphere["status"] == "ok"
     assert trained["fscore"] > sphere["fscore"] + 0.2, (trained, sphere)
@@ -61,5 +61,5 @@ def test_trained_field_beats_its_initial_sphere_and_writes_normals_and_a_preview
         loaded.vertex_normals * trimesh.Trimesh(loaded.vertices, loaded.faces).vertex_normals
     ).sum(-1)
     assert np.median(agree) > 0.9
-    preview = workspace / "runs" / "sdf" / "mesh" / "preview.png"
-    assert mesh["preview"] == str(preview) and preview.stat().st_size > 1000
+    previews = [workspace / "runs" / "sdf" / "mesh" / name for name in mesh["previews"]]
+    assert len(previews) == 3 and all(p.stat().st_size > 1000 for p in previews)

@@ -2,6 +2,7 @@
 sfm (pose import) -> train -> render -> mesh -> eval, and resume / bad-run handling."""
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +79,26 @@ def test_render_writes_png_and_metric_depth(trained):
         "--video",
     )
     assert (trained / "runs" / "plenoxel" / "renders" / "orbit" / "video.mp4").stat().st_size > 0
+    # above the training size: --scale 2 renders every 2nd view at twice the side, and its
+    # metric depth agrees with the 1x render's (area-downsampled) where both see the sphere
+    big = json.loads(
+        recon_cli(
+            "render", "-w", str(trained), "--run", "plenoxel", "--scale", "2", "--every", "2",
+            "--json",
+        ).stdout
+    )  # fmt: skip
+    assert big["frames"] == 2 and big["resolution"] == [
+        2 * out["resolution"][0],
+        2 * out["resolution"][1],
+    ]
+    assert big["out"].endswith("renders/test-x2")  # the 1x renders stay
+    big_depth = read_depth_exr(Path(big["out"]) / "depth" / "r_0.exr")
+    assert big_depth.shape == (2 * depth.shape[0], 2 * depth.shape[1])
+    small = big_depth.reshape(depth.shape[0], 2, depth.shape[1], 2).mean((1, 3))
+    inside = (depth > 0) & (big_depth.reshape(depth.shape[0], 2, depth.shape[1], 2) > 0).all((1, 3))
+    assert inside.sum() > 50 and np.median(np.abs(small[inside] - depth[inside])) < 0.02
+    bad = recon_cli("render", "-w", str(trained), "--run", "plenoxel", "--scale", "0", check=False)
+    assert bad.returncode == 2 and "--scale" in bad.stderr
 
 
 def test_mesh_and_eval_against_ground_truth(trained):
@@ -93,6 +114,39 @@ def test_mesh_and_eval_against_ground_truth(trained):
     assert "depth_abs_rel" in res["mean"]
     assert res["speed"]["steps"] == 150
     assert (trained / "report.md").exists() and (trained / "speed_vs_error.png").stat().st_size > 0
+
+
+def test_report_html_shows_the_runs_and_opens_in_a_browser(trained, tmp_path):
+    """After render (an orbit video), mesh and eval: report.html links only files that exist,
+    shows every held-out view four ways and the mesh previews, and a real headless browser
+    loads it with no console error, no broken image and a playable video."""
+    recon_cli(
+        "render", "-w", str(trained), "--run", "plenoxel", "--path", "orbit", "--frames", "6",
+        "--video",
+    )  # fmt: skip
+    recon_cli("eval", "-w", str(trained), "--run", "plenoxel")
+    page = trained / "report.html"
+    text = page.read_text()
+    links = re.findall(r'(?:src|href)="([^"#]+)"', text)
+    assert links and all((trained / link).is_file() for link in links), links
+    metrics = json.loads((trained / "runs" / "plenoxel" / "eval" / "metrics.json").read_text())
+    views = metrics["pictures"]
+    assert views and set(views) == set(metrics["per_view"])
+    for kinds in views.values():
+        for kind in ("gt", "render", "error", "depth"):
+            assert f'src="runs/plenoxel/eval/views/{kinds[kind]["thumb"]}"' in text
+    mesh = json.loads((trained / "runs" / "plenoxel" / "mesh" / "mesh.json").read_text())
+    assert len(mesh["previews"]) == 3 and "mesh/preview_0.png" in text
+    assert "video.mp4" in text and "sfm_cameras.png" in text
+    assert "15 registered photos</summary>" in text and "r_0 (test)" in text
+
+    from tests.browser import open_page
+
+    shot = tmp_path / "report.png"
+    seen = open_page(page, shot)
+    assert seen["images"] >= 4 * len(views) + 5, seen
+    assert seen["errors"] == [] and seen["broken"] == [] and seen["bad_videos"] == [], seen
+    assert shot.stat().st_size > 10_000
 
 
 def test_existing_run_is_refused_and_resume_continues(trained):
@@ -146,6 +200,7 @@ def test_forced_rerun_that_fails_keeps_the_old_run(trained):
 
 def test_3dgs_train_render_and_splat_export(trained):
     from recon.gaussians.ply import read_splat_ply
+    from recon.gaussians.splat_formats import read_compressed_ply, read_dot_splat
 
     recon_cli(
         "train",
@@ -169,6 +224,21 @@ def test_3dgs_train_render_and_splat_export(trained):
     assert np.abs(means).max() < 3.0
     proc = recon_cli("export", "-w", str(trained), "--run", "plenoxel", check=False)
     assert proc.returncode != 0 and "3dgs" in proc.stderr
+    # the compact formats: the same Gaussians, read back as the viewers decode them
+    G = out["gaussians"]
+    for fmt, reader, size in (
+        ("splat", read_dot_splat, 32 * G),
+        ("compressed-ply", read_compressed_ply, None),
+    ):
+        args = ("export", "-w", str(trained), "--run", "3dgs", "--format", fmt, "--json")
+        done = json.loads(recon_cli(*args, "--sh-degree", "0").stdout)
+        back = reader(done["path"])
+        assert len(back["means"]) == G and done["sh_degree"] == 0
+        assert np.allclose(np.sort(back["means"][:, 0]), np.sort(means[:, 0]), atol=0.02)
+        if size is not None:
+            assert done["bytes"] == size
+    bad = recon_cli("export", "-w", str(trained), "--run", "3dgs", "--sh-degree", "4", check=False)
+    assert bad.returncode == 2 and "sh-degree" in bad.stderr
     # the exported file seeds a new run through the CLI flag (round trip of the PLY format)
     recon_cli(
         "train",

@@ -6,11 +6,21 @@ import math
 import pytest
 import torch
 
+from recon.gaussians import rasterize
 from recon.gaussians.projection import conic_from_cov2d, radius_3sigma
 from recon.gaussians.rasterize import ALPHA_MAX, T_MIN, rasterize_features
 from recon.gaussians.rasterize_reference import rasterize_features_reference
 from recon.gaussians.rasterize_torch import rasterize_features_torch
-from recon.gaussians.tiles import bin_gaussians, bin_gaussians_sorted, tile_bounds
+from recon.gaussians.tiles import (
+    TILE,
+    TILE_LARGE,
+    alpha_extent,
+    bin_gaussians,
+    bin_gaussians_sorted,
+    stable_argsort,
+    tile_bounds,
+    tile_size,
+)
 
 F64 = torch.float64
 
@@ -180,9 +190,9 @@ def test_culled_splats_contribute_nothing():
 def test_counting_sort_binning_equals_global_key_sort(seed):
     means2d, _, _, _, radii, depths = random_splats(300, 70, 45, seed=seed, sigma=6.0)
     depths[:10] = 1.0  # ties keep their index order in both
-    bounds = tile_bounds(means2d, radii, 70, 45)
-    starts_a, ids_a = bin_gaussians(bounds, depths, 70, 45)
-    starts_b, ids_b = bin_gaussians_sorted(bounds, depths, 70, 45)
+    bounds = tile_bounds(means2d, radii, 70, 45, TILE)
+    starts_a, ids_a = bin_gaussians(bounds, depths, 70, 45, TILE)
+    starts_b, ids_b = bin_gaussians_sorted(bounds, depths, 70, 45, TILE)
     assert torch.equal(starts_a, starts_b) and torch.equal(ids_a, ids_b)
     for t in range(len(starts_a) - 1):  # each tile's list is front to back
         d = depths[ids_a[starts_a[t] : starts_a[t + 1]]]
@@ -191,10 +201,81 @@ def test_counting_sort_binning_equals_global_key_sort(seed):
 
 def test_tile_bounds_worked_example():
     bounds = tile_bounds(
-        torch.tensor([[20.0, 5.0], [-50.0, 5.0]]), torch.tensor([3.0, 3.0]), 64, 64
+        torch.tensor([[20.0, 5.0], [-50.0, 5.0]]), torch.tensor([3.0, 3.0]), 64, 64, TILE
     )
     assert bounds[0].tolist() == [1, 0, 2, 1]
     assert bounds[1, 0] == bounds[1, 2]  # entirely left of the image: no tiles
+
+
+def test_alpha_extent_worked_example():
+    """conic (1, 0, 4), o = 1: Q <= q = 2 ln 255 (1 + 1e-3) + 2e-3 -> half sides sqrt(q),
+    sqrt(q) / 2; o below 1/255 -> -1; an indefinite conic -> inf."""
+    e = alpha_extent(
+        torch.tensor([[1.0, 0.0, 4.0], [1.0, 0.0, 4.0], [1.0, 2.0, 1.0]]),
+        torch.tensor([1.0, 0.003, 0.5]),
+    )
+    q = 2 * math.log(255) * 1.001 + 0.002
+    assert torch.allclose(e[0], torch.tensor([math.sqrt(q), math.sqrt(q) / 2], dtype=F64))
+    assert math.isclose(float(e[0, 0]), 3.3310, abs_tol=1e-4)
+    assert e[1].tolist() == [-1.0, -1.0] and torch.isinf(e[2]).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_alpha_bounds_drop_only_tiles_no_pixel_of_the_splat_reaches(seed):
+    """Boxes shrunk to the alpha >= 1/255 ellipse lie inside the 3-sigma boxes, hold every
+    pixel where a splat's alpha reaches 1/255 inside its 3-sigma box, and rasterize to the
+    same image bit for bit; on these splats they drop a third of the tile entries."""
+    W, H = 70, 45
+    means2d, conics, opacities, features, radii, depths = random_splats(
+        300, W, H, seed=seed, sigma=6.0
+    )
+    loose = tile_bounds(means2d, radii, W, H, TILE)
+    tight = tile_bounds(means2d, radii, W, H, TILE, conics, opacities)
+    empty = (tight[:, 2] <= tight[:, 0]) | (tight[:, 3] <= tight[:, 1])
+    inside = (tight[:, :2] >= loose[:, :2]) & (tight[:, 2:] <= loose[:, 2:])
+    assert (empty | inside.all(1)).all()
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    centres = torch.stack([xs, ys], -1).reshape(-1, 2).to(F64) + 0.5
+    d = centres[None] - means2d[:, None]
+    A, B, C = conics.unbind(-1)
+    power = -0.5 * (A[:, None] * d[..., 0] ** 2 + C[:, None] * d[..., 1] ** 2)
+    power = power - B[:, None] * d[..., 0] * d[..., 1]
+    reaches = opacities[:, None] * torch.exp(power) >= 1 / 255  # (G, pixels)
+    tx, ty = (centres[:, 0] // TILE).long(), (centres[:, 1] // TILE).long()
+
+    def listed(b):
+        return (tx >= b[:, :1]) & (tx < b[:, 2:3]) & (ty >= b[:, 1:2]) & (ty < b[:, 3:4])
+
+    assert not (reaches & listed(loose) & ~listed(tight)).any()
+    size = lambda b: int(((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])).clamp_min(0).sum())
+    assert size(tight) < 0.8 * size(loose)
+    images = []
+    for bounds in (loose, tight):
+        starts, ids = bin_gaussians(bounds, depths, W, H, TILE)
+        images.append(
+            rasterize._RasterizeFeatures.apply(
+                means2d, conics, opacities, features, starts, ids, W, H, TILE
+            )
+        )
+    assert all(torch.equal(a, b) for a, b in zip(*images))
+
+
+def test_tile_size_grows_with_the_image():
+    assert tile_size(200, 200) == TILE and tile_size(383, 384) == TILE
+    assert tile_size(384, 384) == TILE_LARGE and tile_size(1913, 1076) == TILE_LARGE
+
+
+def test_large_tiles_match_reference():
+    """An image big enough for 32 px tiles: fast and packed torch rasterizers against the
+    dense reference (which lists splats by the same tiles)."""
+    W, H = 400, 390
+    assert tile_size(W, H) == TILE_LARGE
+    splats = random_splats(60, W, H, seed=9, sigma=12.0)
+    compare(splats, W, H)
+    packed = rasterize_features_torch(*splats, W, H)
+    ref = rasterize_features_reference(*splats, W, H)
+    for a, b in zip(packed, ref):
+        assert torch.allclose(a, b, atol=1e-10)
 
 
 @pytest.mark.parametrize("G, W, H, seed", [(60, 37, 29, 0), (150, 48, 32, 1)])
@@ -219,3 +300,13 @@ def test_packed_rasterizer_terminates_early_like_the_reference():
     ref = rasterize_features_reference(*splats, 40, 24)
     assert torch.allclose(packed[0], ref[0], atol=1e-10)
     assert torch.allclose(packed[1], ref[1], atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_radix_argsort_equals_torch_stable_argsort(dtype):
+    gen = torch.Generator().manual_seed(3)
+    values = torch.randn(5000, generator=gen, dtype=dtype) * 10
+    values[::7] = values[3]  # ties keep index order
+    values[:5] = torch.tensor([0.0, -0.5, float("inf"), -float("inf"), 1e-30], dtype=dtype)
+    expected = torch.argsort(values, stable=True)
+    assert torch.equal(torch.from_numpy(stable_argsort(values.numpy())), expected)

@@ -83,8 +83,12 @@ def planned_outputs(config: Path) -> set[str]:
 @pytest.fixture
 def two_scenes(tmp_path):
     """Two copies of sample_data (transforms + images) as scenes a and b."""
+    old = time.time() - 1000  # older than the outputs `made_by_hand` dates 100 s back: a
+    # fresh clone's sample_data is only as old as the clone, which may be younger than that
     for name in ("a", "b"):
         shutil.copytree(ROOT / "sample_data", tmp_path / "data" / name)
+        for path in (tmp_path / "data" / name).rglob("*"):
+            os.utime(path, (old, old))
     scenes = {name: {"transforms": f"data/{name}"} for name in ("a", "b")}
     return tmp_path, scenes
 

@@ -10,7 +10,7 @@ from recon.cameras import Cameras
 from recon.models.base import MethodSpec, Model, register
 from recon.options import field_help
 from recon.train.config import TrainConfig, apply_overrides
-from recon.train.loop import LoopState, eval_due, run_loop, should_stop
+from recon.train.loop import LoopState, eval_due, report_progress, run_loop, should_stop
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,6 +146,26 @@ def test_a_stale_reserve_is_remeasured_so_the_budget_is_used():
     assert 2.9 <= st.elapsed_s <= 3.1, st.elapsed_s
     assert len([e for e in logs if "test_psnr" in e]) == 2  # the first and the final one
     assert len(renders) == 4 + 1 + 4  # first evaluation, one one-view re-measure, final
+
+
+def test_progress_counts_steps_or_the_seconds_of_the_budget():
+    """With --steps the bar counts steps; with --time-budget it counts seconds of the budget
+    (so its ETA is the time left) and says the step; the best held-out PSNR once there is one."""
+    calls = []
+
+    def progress(*args, **info):
+        calls.append((args, info))
+
+    st = LoopState(step=40, elapsed_s=12.7)
+    report_progress(progress, TrainConfig("3dgs", steps=100), st, {"psnr": 21.5})
+    report_progress(progress, TrainConfig("3dgs", time_budget_s=600), st, {"psnr": 21.5})
+    st.best_psnr, st.elapsed_s = 24.123, 650.0
+    report_progress(progress, TrainConfig("3dgs", time_budget_s=600), st, {"psnr": 22.0})
+    assert calls == [
+        (("train steps", 40, 100), {"psnr": 21.5, "test_psnr": None}),
+        (("train s", 12, 600), {"step": 40, "psnr": 21.5, "test_psnr": None}),
+        (("train s", 600, 600), {"step": 40, "psnr": 22.0, "test_psnr": 24.12}),
+    ]
 
 
 def test_eval_due_worked_example():

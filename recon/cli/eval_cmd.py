@@ -26,11 +26,12 @@ from recon.workspace import Workspace
 @config_option(EvalConfig, "max_side", type=click.IntRange(0))
 @config_option(EvalConfig, "downscale", type=click.IntRange(0))
 @config_option(EvalConfig, "border", type=click.FloatRange(0.0, 0.5, min_open=True))
+@config_option(EvalConfig, "pictures")
 @config_option(EvalConfig, "device")
 @click.option("--force", is_flag=True, help="Evaluate stale runs too.")
 @json_option
 def command(workspace, runs, force, as_json, **options):
-    """Evaluate runs -> WS/runs/RUN/eval/metrics.json, WS/report.md, WS/speed_vs_error.png."""
+    """Evaluate runs -> WS/runs/RUN/eval/metrics.json, WS/report.html, WS/report.md, WS/speed_vs_error.png."""
     if options["max_side"] and options["downscale"]:
         raise click.UsageError("give --max-side or --downscale, not both")
     ws = Workspace.open(workspace)
@@ -62,4 +63,6 @@ def command(workspace, runs, force, as_json, **options):
             f"eval: {run} at {w}x{h}: PSNR {mean['psnr']:.2f} dB (border {mean['psnr_border']:.2f}), "
             f"SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}"
         )
-    click.echo(f"report: {ws.report_md}  plot: {ws.speed_plot}")
+    click.echo(
+        f"report: {ws.report_html} (terminal: {ws.report_md.name}, plot: {ws.speed_plot.name})"
+    )

@@ -1,4 +1,4 @@
-"""`recon export`: a 3dgs run as the de-facto INRIA splat PLY, in the original scene units."""
+"""`recon export`: a 3dgs run as a splat file viewers open (INRIA PLY, .splat, compressed PLY)."""
 
 from __future__ import annotations
 
@@ -17,9 +17,17 @@ from recon.workspace import Workspace
     "--format",
     "fmt",
     default="ply",
-    type=click.Choice(["ply"]),
+    type=click.Choice(["ply", "splat", "compressed-ply"]),
     show_default=True,
-    help="ply: the INRIA splat PLY (x y z nx ny nz f_dc_* f_rest_* opacity scale_* rot_*).",
+    help="ply: the INRIA splat PLY (62 floats a Gaussian); splat: the 32-byte .splat of web "
+    "viewers (base colour only); compressed-ply: PlayCanvas/SuperSplat's quantised PLY "
+    "(16 bytes a Gaussian + 3 per SH coefficient).",
+)
+@click.option(
+    "--sh-degree",
+    type=click.IntRange(0, 3),
+    default=None,
+    help="Keep the SH bands up to this degree (default: all the model has; .splat keeps 0).",
 )
 @click.option(
     "--frame",
@@ -32,15 +40,18 @@ from recon.workspace import Workspace
     "-o",
     "--output",
     type=click.Path(path_type=Path),
-    help="Output path (default WS/runs/RUN/export/splat.ply).",
+    help="Output path (default WS/runs/RUN/export/ splat.ply | scene.splat | scene.compressed.ply).",
 )
 @json_option
-def command(workspace, run, fmt, frame, output, as_json):
-    """Export a Gaussian-splat run -> WS/runs/RUN/export/splat.ply (loadable by common splat viewers)."""
+def command(workspace, run, fmt, sh_degree, frame, output, as_json):
+    """Export a Gaussian-splat run -> WS/runs/RUN/export/ (files common splat viewers open)."""
     from recon.export.stage import export_splats
 
-    result = export_splats(Workspace.open(workspace), run, frame, output)
+    result = export_splats(Workspace.open(workspace), run, frame, output, fmt, sh_degree)
     if as_json:
         emit_json(result)
     else:
-        click.echo(f"export: {result['gaussians']} Gaussians ({frame} frame) -> {result['path']}")
+        click.echo(
+            f"export: {result['gaussians']} Gaussians ({frame} frame, {fmt}, SH degree "
+            f"{result['sh_degree']}, {result['bytes'] / 1e6:.1f} MB) -> {result['path']}"
+        )

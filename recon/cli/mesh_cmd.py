@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
@@ -21,8 +23,9 @@ from recon.workspace import Workspace
 @config_option(MeshConfig, "truncation")
 @config_option(MeshConfig, "min_component")
 @config_option(MeshConfig, "format")
+@config_option(MeshConfig, "previews", type=click.IntRange(0))
+@config_option(MeshConfig, "preview_max_side", type=click.IntRange(16))
 @config_option(MeshConfig, "device")
-@config_option(MeshConfig, "preview")
 @click.option("--force", is_flag=True, help="Mesh even if the run is stale.")
 @json_option
 def command(workspace, run, force, as_json, **options):
@@ -38,5 +41,6 @@ def command(workspace, run, force, as_json, **options):
             f"mesh: {result['method']} {result.get('vertices')} vertices, {result.get('faces')} faces "
             f"in {result['seconds']:.1f} s -> {result['path']}"
         )
-        if "preview" in result:
-            click.echo(f"mesh: preview -> {result['preview']}")
+        if result["previews"]:
+            where = Path(result["path"]).parent
+            click.echo(f"mesh: previews -> {', '.join(str(where / n) for n in result['previews'])}")

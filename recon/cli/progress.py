@@ -54,7 +54,7 @@ class Progress:
     def update(self, phase: str, done: int, total: int | None = None, **info) -> None:
         if not self.enabled:
             return
-        text = "  ".join(f"{k}={_fmt(v)}" for k, v in info.items())
+        text = "  ".join(f"{k}={_fmt(v)}" for k, v in info.items() if v is not None)
         if self._rich is not None:
             if phase not in self._tasks:
                 self._tasks[phase] = self._rich.add_task(phase, total=total, info="")

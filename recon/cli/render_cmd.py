@@ -21,6 +21,8 @@ from recon.workspace import Workspace
 @config_option(RenderConfig, "fps")
 @config_option(RenderConfig, "max_side", type=click.IntRange(0))
 @config_option(RenderConfig, "downscale", type=click.IntRange(0))
+@config_option(RenderConfig, "scale", type=click.FloatRange(0, min_open=True))
+@config_option(RenderConfig, "every", type=click.IntRange(1))
 @config_option(RenderConfig, "device")
 @click.option("--force", is_flag=True, help="Render even if the run is stale.")
 @json_option

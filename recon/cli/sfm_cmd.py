@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+import sys
 from pathlib import Path
 
 import click
@@ -16,6 +17,7 @@ from recon.sfm.scene_writer import SceneConfig
 from recon.sfm.sources import SourceError, read_colmap, read_transforms
 from recon.sfm.stage import write_sfm_stage
 from recon.workspace import Workspace
+from recon.workspace.registration import partial_warning
 
 
 @contextlib.contextmanager
@@ -125,6 +127,12 @@ def _summary_line(report: dict, root: Path) -> str:
 @config_option(SfmConfig, "single_camera", "--single-camera/--multi-camera")
 @config_option(SfmConfig, "try_harder")
 @config_option(SfmConfig, "min_image_side", type=click.IntRange(1))
+@config_option(SfmConfig, "min_registered", type=click.FloatRange(0.0, 1.0))
+@click.option(
+    "--allow-partial",
+    is_flag=True,
+    help="Exit 0 even when fewer than --min-registered of the photos registered.",
+)
 @config_option(SfmConfig, "seed")
 @config_option(SfmConfig, "num_threads")
 @_video_option("frames", type=int)
@@ -142,6 +150,7 @@ def sfm(
     frames,
     fps,
     blur_ratio,
+    allow_partial,
     as_json,
     **options,
 ):
@@ -152,6 +161,9 @@ def sfm(
     recon sfm VIDEO|FOLDER -w WS [--frames N]   ... on frames of a video (or of a folder's videos)
     recon sfm --from-transforms F|DIR -w WS     known poses (transforms*.json)
     recon sfm --from-colmap MODEL -w WS         known poses (COLMAP model)
+
+    Exit codes: 0 done, 1 error (the workspace is left as it was), 2 bad usage, 3 fewer than
+    --min-registered of the photos registered (the model is written; --allow-partial: 0).
     """
     sources = [x for x in (images, transforms, colmap_dir) if x is not None]
     if len(sources) != 1:
@@ -191,3 +203,12 @@ def sfm(
         emit_json({"workspace": str(root), **report})
     else:
         click.echo(_summary_line(report, root))
+    registration = report.get("registration", {})
+    if registration.get("partial"):
+        click.echo(
+            f"warning: {partial_warning(registration)}; the model is in {root / 'sfm'} "
+            f"(reasons: {root / 'sfm' / 'report.json'})",
+            err=True,
+        )
+        if not allow_partial:
+            sys.exit(3)

@@ -22,41 +22,40 @@ def _size(wh) -> str:
     return f"{wh[0]}×{wh[1]}" if wh else "–"
 
 
-def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
-    rows = [
-        (
-            "| run | method | trained at | steps | train s | eval at | PSNR | border PSNR | SSIM | LPIPS | "
-            "t→25 dB s | render ms | params | peak MB | Chamfer | F-score | depth absrel |"
-        ),
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+COLUMNS = (
+    "run", "method", "trained at", "steps", "train s", "eval at", "PSNR", "border PSNR", "SSIM",
+    "LPIPS", "t→25 dB s", "render ms", "params", "peak MB", "Chamfer", "F-score", "depth absrel",
+)  # fmt: skip
+
+
+def row_cells(run: str, m: dict) -> list[str]:
+    """One run's metrics.json as the `COLUMNS` of the report tables (markdown and HTML)."""
+    sp, geo, mean = m.get("speed", {}), m.get("geometry", {}), m.get("mean", {})
+    ok = geo.get("status") == "ok"
+    return [
+        run,
+        m.get("method", ""),
+        _size(sp.get("trained_at")),
+        _fmt(sp.get("steps")),
+        _fmt(sp.get("train_wall_s"), 1),
+        _size(m.get("resolution")),
+        _fmt(mean.get("psnr")),
+        _fmt(mean.get("psnr_border")),
+        _fmt(mean.get("ssim"), 4),
+        _fmt(mean.get("lpips"), 4),
+        _fmt((sp.get("time_to_psnr_s") or {}).get("25"), 1),
+        _fmt(m.get("render_ms_per_frame"), 1),
+        _fmt(int(sp["parameters"]) if sp.get("parameters") else None),
+        _fmt(sp.get("peak_rss_mb"), 0),
+        _fmt(geo.get("chamfer"), 5) if ok else "–",
+        _fmt(geo.get("fscore"), 3) if ok else "–",
+        _fmt(mean.get("depth_abs_rel"), 4),
     ]
-    for run, m in sorted(metrics.items()):
-        sp, geo, mean = m.get("speed", {}), m.get("geometry", {}), m.get("mean", {})
-        rows.append(
-            "| "
-            + " | ".join(
-                [
-                    run,
-                    m.get("method", ""),
-                    _size(sp.get("trained_at")),
-                    _fmt(sp.get("steps")),
-                    _fmt(sp.get("train_wall_s"), 1),
-                    _size(m.get("resolution")),
-                    _fmt(mean.get("psnr")),
-                    _fmt(mean.get("psnr_border")),
-                    _fmt(mean.get("ssim"), 4),
-                    _fmt(mean.get("lpips"), 4),
-                    _fmt((sp.get("time_to_psnr_s") or {}).get("25"), 1),
-                    _fmt(m.get("render_ms_per_frame"), 1),
-                    _fmt(int(sp["parameters"]) if sp.get("parameters") else None),
-                    _fmt(sp.get("peak_rss_mb"), 0),
-                    _fmt(geo.get("chamfer"), 5) if geo.get("status") == "ok" else "–",
-                    _fmt(geo.get("fscore"), 3) if geo.get("status") == "ok" else "–",
-                    _fmt(mean.get("depth_abs_rel"), 4),
-                ]
-            )
-            + " |"
-        )
+
+
+def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
+    rows = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    rows += ["| " + " | ".join(row_cells(run, m)) + " |" for run, m in sorted(metrics.items())]
     any_m = next(iter(metrics.values()), {})
     notes = [
         (

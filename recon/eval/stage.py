@@ -13,8 +13,11 @@ import cv2
 import numpy as np
 import torch
 
+from recon.eval.html import write_html_report
 from recon.eval.report import write_report
+from recon.eval.sfm_plot import plot_sfm
 from recon.eval.speed import read_log, speed_metrics
+from recon.eval.visuals import write_view_pictures
 from recon.io.exr import read_depth_exr
 from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
 from recon.models.registry import pick_device
@@ -51,6 +54,9 @@ class EvalConfig:
     border: float = opt(
         0.15, "PSNR is also reported on the outer band of this fraction of each side"
     )
+    pictures: bool = opt(
+        True, "write photo / render / error / depth pictures of each view for report.html"
+    )
     device: str = opt(
         "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
     )
@@ -69,7 +75,7 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
     gts = load_images(ws, scene, idx, k_out).to(device)
     out_h, out_w = gts.shape[1:3]
     band = border_mask(out_h, out_w, cfg.border).to(device)
-    per_view, times = {}, []
+    per_view, times, pictures = {}, [], {}
     for i, fi in enumerate(idx):
         t0 = time.perf_counter()
         out = render_view(model, cams[i], out_w, out_h)
@@ -96,11 +102,21 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
             )
             m.update({f"depth_{k}": v for k, v in errs.items() if k != "count"})
         per_view[scene.frames[fi]["name"]] = m
+        if cfg.pictures:
+            pictures[scene.frames[fi]["name"]] = write_view_pictures(
+                ws.eval_dir(run) / "views",
+                scene.frames[fi]["name"],
+                gts[i].cpu().numpy(),
+                pred.cpu().numpy(),
+                out["depth"].float().cpu().numpy(),
+                out["acc"].float().cpu().numpy(),
+            )
     keys = sorted({k for v in per_view.values() for k in v})
     mean = {k: float(np.nanmean([v[k] for v in per_view.values() if k in v])) for k in keys}
     sfm_size = scene.image_size("train")
     return {
         "per_view": per_view,
+        "pictures": pictures,
         "mean": mean,
         "views": len(idx),
         "render_ms_per_frame": round(1000 * float(np.median(times)), 2),
@@ -139,8 +155,26 @@ def observed_fn(scene, tol: float):
     return lambda points: observed_by_depth(points, mats, Ks, depths, tol)
 
 
+def align_to_reference(mesh, poses: dict) -> str:
+    """Move `mesh` (trimesh, our world frame) into the reference's frame with the Sim3 of the
+    camera centres found by `pose_section` (x_ref = s A x + b); returns what was done. A mesh
+    made from SfM poses lives in the SfM's own frame and scale: without this its distances to
+    the ground truth would measure the frame, not the surface."""
+    if poses.get("status") != "ok" or "sim3" not in poses:
+        return "none"
+    sim = poses["sim3"]
+    A, b = np.asarray(sim["rotation"]), np.asarray(sim["translation"])
+    mesh.vertices = sim["scale"] * np.asarray(mesh.vertices) @ A.T + b
+    return f"Sim3 of the camera centres onto --gt-poses (scale {sim['scale']:.6g})"
+
+
 def geometry_section(
-    ws: Workspace, run: str, cfg: EvalConfig, scene_gt_mesh: str | None, scene=None
+    ws: Workspace,
+    run: str,
+    cfg: EvalConfig,
+    scene_gt_mesh: str | None,
+    scene=None,
+    poses: dict | None = None,
 ) -> dict:
     import trimesh
 
@@ -158,14 +192,20 @@ def geometry_section(
         }
     gt = trimesh.load(str(gt_path), process=False, force=None)
     pred = trimesh.load(str(meshes[0]), process=False, force="mesh")
+    aligned = align_to_reference(pred, poses or {})
     diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
     tau = cfg.tau or 0.01 * diag
     observed = observed_fn(scene, tau) if scene is not None and not cfg.gt_points else None
+    if observed is None and aligned != "none" and not cfg.gt_points:
+        from recon.eval.poses import reference_observed_fn
+
+        observed = reference_observed_fn(Path(cfg.gt_poses), tau)
     m = geometry_metrics(pred, gt, tau, gt_observed_fn=observed)
     return {
         "status": "ok",
         "gt": str(gt_path),
         "mesh": str(meshes[0]),
+        "aligned": aligned,
         "tau": tau,
         **{k: float(v) for k, v in m.items() if np.isscalar(v)},
     }
@@ -213,7 +253,7 @@ def evaluate(
             "split": cfg.split,
             "lpips_network": lpips_note,
             **image_metrics(ws, run, cfg, device, lpips_model),
-            "geometry": geometry_section(ws, run, cfg, scene.gt_mesh, scene),
+            "geometry": geometry_section(ws, run, cfg, scene.gt_mesh, scene, poses),
             "pose": poses,
             "speed": speed_metrics(run_doc, log),
         }
@@ -235,7 +275,10 @@ def evaluate(
     # each from every metrics.json on disk, so the last one written lists them all
     with ws.writer_lock("report", wait=True):
         all_metrics = {r: _load_metrics(ws, r) for r in ws.runs()}
-        write_report(ws, {r: m for r, m in all_metrics.items() if m is not None})
+        done = {r: m for r, m in all_metrics.items() if m is not None}
+        write_report(ws, done)
+        plot_sfm(ws, load_scene(ws))
+        write_html_report(ws, done)
     return results
 
 

@@ -84,14 +84,6 @@ class SparseVoxelGrid(nn.Module):
         }
 
     @torch.no_grad()
-    def dense(self, name: str, fill: float = 0.0) -> Tensor:
-        """(res, res, res, C) dense copy of one channel group, indexed [z, y, x] (flat order)."""
-        C = self.data[name].shape[1]
-        out = torch.full((self.res**3, C), fill, device=self.links.device)
-        out[self.coords] = self.data[name].detach()
-        return out.view(self.res, self.res, self.res, C)
-
-    @torch.no_grad()
     def set_rows(
         self, keep_flat: Tensor, values: dict[str, Tensor], res: int | None = None
     ) -> None:

@@ -29,8 +29,8 @@ from numba import prange
 from torch import Tensor
 from torch.profiler import record_function
 
-from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
-from recon.gaussians.tiles import TILE, bin_gaussians, tile_bounds
+from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, SLACK, T_MIN
+from recon.gaussians.tiles import bin_gaussians, tile_bounds, tile_size
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
     # numba's OpenMP layer loads the system libgomp, torch ships its own: two OpenMP runtimes
@@ -39,7 +39,6 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
     # Takes effect only if no numba parallel region has run yet in this process.
     numba.config.THREADING_LAYER = "workqueue"
 
-SLACK = 1e-3  # relative widening of the alpha >= 1/255 ellipse used to skip pixels
 RECUR_MAX_A = 4.0  # conic x-curvatures up to this use the exp recurrence (no overflow risk)
 FORWARD_CHUNKS = 64  # parallel work items of the forward, each a strided set of tiles
 GRAD_COLUMNS = 6  # d mean2d (2), d conic (3), d opacity (1), then d features (D)
@@ -216,9 +215,10 @@ def _forward_kernel(
     consts,
     centers,
 ):
-    out_feat = np.zeros((height, width, features.shape[1]), features.dtype)
-    out_T = np.ones((height, width), features.dtype)
-    out_last = np.full((height, width), -1, np.int32)
+    # every pixel belongs to one tile, whose epilogue writes it: no serial fill first
+    out_feat = np.empty((height, width, features.shape[1]), features.dtype)
+    out_T = np.empty((height, width), features.dtype)
+    out_last = np.empty((height, width), np.int32)
     n_tiles = tile_start.shape[0] - 1
     # Interleaved chunks: prange hands out contiguous blocks, and a block of image rows can
     # hold most of the work; tiles t, t + 64, ... cost about the same as any other such set.
@@ -435,7 +435,9 @@ class _RasterizeFeatures(torch.autograd.Function):
     computed in the dtype of `features`."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, tile_start, gauss_ids, width, height):
+    def forward(
+        ctx, means2d, conics, opacities, features, tile_start, gauss_ids, width, height, tile
+    ):
         dt = features.dtype
         np_dt = _numpy(features, dt).dtype
         # Constants and pixel centres in the working dtype: float32 math stays float32 (expf
@@ -451,7 +453,7 @@ class _RasterizeFeatures(torch.autograd.Function):
             gauss_ids.numpy(),
             width,
             height,
-            TILE,
+            tile,
             consts,
             centers,
         )
@@ -483,6 +485,7 @@ class _RasterizeFeatures(torch.autograd.Function):
             None,
             None,
             None,
+            None,
         )
 
 
@@ -509,8 +512,9 @@ def rasterize_features(
             means2d, conics, opacities, features, radii, depths, width, height
         )
     with record_function("3dgs.bin"):
-        bounds = tile_bounds(means2d, radii, width, height)
-        tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height)
+        tile = tile_size(width, height)
+        bounds = tile_bounds(means2d, radii, width, height, tile, conics, opacities)
+        tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height, tile)
     return _RasterizeFeatures.apply(
-        means2d, conics, opacities, features, tile_start, gauss_ids, width, height
+        means2d, conics, opacities, features, tile_start, gauss_ids, width, height, tile
     )

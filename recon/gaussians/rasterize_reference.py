@@ -14,7 +14,7 @@ from torch import Tensor
 
 from recon.cameras.rays import pixel_centers
 from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
-from recon.gaussians.tiles import TILE, tile_bounds
+from recon.gaussians.tiles import tile_bounds, tile_size
 from recon.volrend.volrend import alpha_compositing
 
 
@@ -52,9 +52,10 @@ def rasterize_features_reference(
     image (H, W, D), transmittance (H, W)."""
     order = torch.argsort(depths.detach(), stable=True)
     order = order[radii[order] > 0]
-    bounds = tile_bounds(means2d, radii, width, height)[order]
+    tile = tile_size(width, height)
+    bounds = tile_bounds(means2d, radii, width, height, tile)[order]
     pixels = pixel_centers(width, height, device=means2d.device, dtype=means2d.dtype).reshape(-1, 2)
-    tile_xy = torch.div(pixels.detach(), TILE, rounding_mode="floor").long()
+    tile_xy = torch.div(pixels.detach(), tile, rounding_mode="floor").long()
     listed = (
         (tile_xy[:, None, 0] >= bounds[:, 0])
         & (tile_xy[:, None, 0] < bounds[:, 2])

@@ -15,16 +15,19 @@ import torch
 from torch import Tensor
 
 from recon.gaussians.alpha import ALPHA_MAX, ALPHA_MIN, T_MIN
-from recon.gaussians.tiles import TILE, bin_gaussians_sorted, tile_bounds, tile_grid
+from recon.gaussians.tiles import bin_gaussians_sorted, tile_bounds, tile_grid, tile_size
 from recon.volrend.volrend import alpha_compositing
 
 
-def _pixel_grid(tile_ids: Tensor, width: int, height: int, dtype) -> tuple[Tensor, Tensor, Tensor]:
-    """Pixel-centre coordinates (N, 256) of the tile of each intersection and their validity."""
-    tiles_x, _ = tile_grid(width, height)
-    slot = torch.arange(TILE * TILE, device=tile_ids.device)
-    px = (tile_ids % tiles_x)[:, None] * TILE + slot % TILE
-    py = torch.div(tile_ids, tiles_x, rounding_mode="floor")[:, None] * TILE + slot // TILE
+def _pixel_grid(
+    tile_ids: Tensor, width: int, height: int, tile: int, dtype
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Pixel-centre coordinates (N, tile^2) of the tile of each intersection and their
+    validity."""
+    tiles_x, _ = tile_grid(width, height, tile)
+    slot = torch.arange(tile * tile, device=tile_ids.device)
+    px = (tile_ids % tiles_x)[:, None] * tile + slot % tile
+    py = torch.div(tile_ids, tiles_x, rounding_mode="floor")[:, None] * tile + slot // tile
     return px.to(dtype) + 0.5, py.to(dtype) + 0.5, (px < width) & (py < height)
 
 
@@ -49,28 +52,28 @@ def rasterize_features_torch(
 ) -> tuple[Tensor, Tensor]:
     """Same arguments and outputs as `rasterize.rasterize_features`: image (H, W, D),
     transmittance (H, W)."""
-    tiles_x, tiles_y = tile_grid(width, height)
+    tile = tile_size(width, height)
+    tiles_x, tiles_y = tile_grid(width, height, tile)
     n_tiles, D = tiles_x * tiles_y, features.shape[1]
-    starts, gid = bin_gaussians_sorted(
-        tile_bounds(means2d, radii, width, height), depths, width, height
-    )
+    bounds = tile_bounds(means2d, radii, width, height, tile, conics, opacities)
+    starts, gid = bin_gaussians_sorted(bounds, depths, width, height, tile)
     tile_ids = torch.repeat_interleave(torch.arange(n_tiles, device=gid.device), starts.diff())
-    px, py, on_image = _pixel_grid(tile_ids, width, height, means2d.dtype)
+    px, py, on_image = _pixel_grid(tile_ids, width, height, tile, means2d.dtype)
     alpha = _alphas(means2d, conics, opacities, gid, px, py, on_image)
-    # each of a tile's 256 pixels composites the tile's depth-sorted list: packed along dim 0
+    # each of a tile's pixels composites the tile's depth-sorted list: packed along dim 0
     weights, alpha = alpha_compositing(alpha, tile_ids, t_min=T_MIN)
     log1m = torch.log1p(-alpha.double())
-    weighted = weights[..., None] * features[gid, None, :]  # (N, 256, D)
-    image = features.new_zeros(n_tiles, TILE * TILE, D).index_add(0, tile_ids, weighted)
-    log_final = log1m.new_zeros(n_tiles, TILE * TILE).index_add(0, tile_ids, log1m)
+    weighted = weights[..., None] * features[gid, None, :]  # (N, tile^2, D)
+    image = features.new_zeros(n_tiles, tile * tile, D).index_add(0, tile_ids, weighted)
+    log_final = log1m.new_zeros(n_tiles, tile * tile).index_add(0, tile_ids, log1m)
     T_final = torch.exp(log_final).to(alpha.dtype)
-    return _untile(image, tiles_x, tiles_y, width, height), _untile(
-        T_final[..., None], tiles_x, tiles_y, width, height
+    return _untile(image, tiles_x, tiles_y, tile, width, height), _untile(
+        T_final[..., None], tiles_x, tiles_y, tile, width, height
     )[..., 0]
 
 
-def _untile(x: Tensor, tiles_x: int, tiles_y: int, width: int, height: int) -> Tensor:
-    """(tiles, 256, D) -> (H, W, D), dropping the padding of edge tiles."""
+def _untile(x: Tensor, tiles_x: int, tiles_y: int, tile: int, width: int, height: int) -> Tensor:
+    """(tiles, tile^2, D) -> (H, W, D), dropping the padding of edge tiles."""
     D = x.shape[-1]
-    x = x.reshape(tiles_y, tiles_x, TILE, TILE, D).permute(0, 2, 1, 3, 4)
-    return x.reshape(tiles_y * TILE, tiles_x * TILE, D)[:height, :width]
+    x = x.reshape(tiles_y, tiles_x, tile, tile, D).permute(0, 2, 1, 3, 4)
+    return x.reshape(tiles_y * tile, tiles_x * tile, D)[:height, :width]

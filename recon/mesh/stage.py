@@ -27,11 +27,11 @@ from recon.mesh.marching_cubes import (
     extract_density_mesh,
     soft_field_threshold,
 )
-from recon.mesh.preview import shaded_view
+from recon.mesh.preview import preview_views, shade_mesh
 from recon.mesh.tsdf import TSDFConfig, fuse_depth_maps
 from recon.models.registry import pick_device
 from recon.options import opt
-from recon.train.resolution import trained_resolution
+from recon.train.resolution import downscale_for_max_side, trained_resolution
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 from recon.workspace.runs import load_run
 
@@ -57,9 +57,8 @@ class MeshConfig:
     truncation: float = opt(0.02, "TSDF truncation as a fraction of the box's longest side")
     min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
     format: str = opt("ply", "mesh file format", choices=("ply", "obj", "glb"))
-    preview: bool = opt(
-        False, "also write mesh/preview.png: the mesh shaded from the first held-out camera"
-    )
+    previews: int = opt(3, "shaded pictures of the mesh from this many training cameras")
+    preview_max_side: int = opt(320, "longer side of the preview pictures (px)")
     device: str = opt(
         "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
     )
@@ -96,25 +95,6 @@ def field_normals(model, vertices: np.ndarray, device, chunk: int = 1 << 15) -> 
     return np.concatenate(out)
 
 
-def write_preview(ws: Workspace, run: str, scene, mesh, normals, level: int) -> Path:
-    """mesh/preview.png: the mesh (scene frame) shaded from the first held-out camera (the
-    first training camera when nothing is held out) at the run's training resolution."""
-    views = scene.split("test") or scene.split("train")
-    cam = scene.cameras(views[:1], "cpu", level)
-    image = shaded_view(
-        mesh,
-        cam.K[0].numpy(),
-        cam.cam_from_world[0].numpy(),
-        int(cam.width[0]),
-        int(cam.height[0]),
-        normals,
-    )
-    path = ws.mesh_dir(run) / "preview.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_png(path, image)
-    return path
-
-
 def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, progress=None) -> dict:
     key = f"train/{run}"
     ws.require_fresh(key, force)
@@ -126,7 +106,6 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     if method == "auto":
         method = "marching-cubes" if model.has_density else "tsdf"
     started = time.time()
-    normals = None
     if method == "marching-cubes" and getattr(model, "has_sdf", False):
         # the surface is the zero level set of the distance, inside where it is negative
         mesh = extract_density_mesh(
@@ -177,10 +156,10 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         torch.stack([train_cams.width, train_cams.height], 1).numpy(),
     )
     mesh = remove_small_components(mesh, cfg.min_component)
+    normals = None
     if getattr(model, "has_sdf", False) and method == "marching-cubes" and len(mesh.vertices):
         normals = field_normals(model, mesh.vertices, device)
-    if cfg.preview:
-        detail["preview"] = str(write_preview(ws, run, scene, mesh, normals, level))
+    previews = write_previews(ws, run, mesh, scene, cfg, normals)
     sim = (
         scene.scene_from_world
     )  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
@@ -197,6 +176,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         "faces_before_cleanup": raw_faces,
         **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
         "seconds": round(time.time() - started, 2),
+        "previews": previews,
         **detail,
     }
     atomic_write_json(ws.mesh_json(run), result)
@@ -211,6 +191,42 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         extra={"faces": result.get("faces")},
     )
     return result
+
+
+def write_previews(
+    ws: Workspace, run: str, mesh, scene, cfg: MeshConfig, normals: np.ndarray | None = None
+) -> list[str]:
+    """Shaded pictures of `mesh` (in the scene frame, as the cameras) from `cfg.previews`
+    cameras, at most `cfg.preview_max_side` px -> mesh/preview_<k>.png; the names. The first
+    is the first held-out camera (a view no training image fixed), the others spread over the
+    training cameras. Per-vertex `normals` (the field's) shade smoothly, else the faces'."""
+    held_out = scene.split("test")[:1]
+    train = scene.split("train")
+    picks = list(held_out) + [train[k] for k in preview_views(len(train), cfg.previews - 1)]
+    picks = picks[: cfg.previews]
+    if not picks:
+        return []
+    k = downscale_for_max_side(*scene.image_size("train"), cfg.preview_max_side)
+    cams = scene.cameras(picks, "cpu", k)
+    colours = None
+    if getattr(mesh.visual, "kind", None) == "vertex":
+        colours = np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0
+    names = []
+    for j in range(len(picks)):
+        image, _ = shade_mesh(
+            np.asarray(mesh.vertices),
+            np.asarray(mesh.faces),
+            cams.K[j].numpy(),
+            cams.cam_from_world[j].numpy(),
+            int(cams.width[j]),
+            int(cams.height[j]),
+            colours,
+            normals,
+        )
+        name = f"preview_{j}.png"
+        write_png(ws.mesh_dir(run) / name, image)
+        names.append(name)
+    return names
 
 
 def read_mesh_json(ws: Workspace, run: str) -> dict | None:

@@ -129,6 +129,16 @@ class Model(nn.Module):
         log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)); models with `exports_splats`."""
         raise NotImplementedError
 
+    def finish(self, data: TrainData) -> dict[str, float]:
+        """Called once when training stops, before the model is saved: a last clean-up that
+        does not change the renders (e.g. dropping what no training ray sees). Returns stats."""
+        return {}
+
+    def file_state(self) -> dict:
+        """The state `save_model` writes to model.pt: `state_dict()`, or a smaller form of it
+        that `load_state_dict` reads back (checkpoints keep the exact `state_dict()`)."""
+        return self.state_dict()
+
     def training_state(self) -> dict:
         """Everything beyond `state_dict()` needed to resume exactly (optimizers, schedules)."""
         return {}

@@ -70,7 +70,7 @@ def save_model(path: Path, method: str, method_cfg: dict, model: Model) -> Path:
             "schema_version": MODEL_SCHEMA_VERSION,
             "method": method,
             "config": method_cfg,
-            "state_dict": model.state_dict(),
+            "state_dict": model.file_state(),
         },
         path,
     )

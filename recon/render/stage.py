@@ -40,6 +40,11 @@ class RenderConfig:
     downscale: int = opt(
         0, "render at the sfm images' size divided by K (0 = the run's training level)"
     )
+    scale: float = opt(
+        1.0,
+        "output size x this, rendered at that size (4: a 200 px run at 800 px; 0.5: half)",
+    )
+    every: int = opt(1, "render every N-th view of the split (ignored with --path)")
     device: str = opt(
         "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
     )
@@ -86,7 +91,7 @@ def render_run(
         sizes = [level_size(*scene.image_size("train"), k_out)] * len(cams)
         target = cfg.path
     else:
-        idx = scene.split(cfg.split)
+        idx = scene.split(cfg.split)[:: cfg.every]
         if not idx:
             raise WorkspaceError(f"the scene has no '{cfg.split}' views")
         cams, names = scene.cameras(idx, device, k_render), [scene.frames[i]["name"] for i in idx]
@@ -96,6 +101,15 @@ def render_run(
             level_size(scene.frames[i]["width"], scene.frames[i]["height"], k_out) for i in idx
         ]
         target = cfg.split
+    if cfg.scale <= 0:
+        raise ValueError(f"--scale must be > 0, got {cfg.scale}")
+    if cfg.scale != 1:  # rendered straight at the new size: intrinsics scaled exactly
+        sizes = [(max(1, round(w * cfg.scale)), max(1, round(h * cfg.scale))) for w, h in sizes]
+        cams = cams.resized(
+            torch.tensor([w for w, _ in sizes], device=cams.width.device),
+            torch.tensor([h for _, h in sizes], device=cams.height.device),
+        )
+        target = f"{target}-x{cfg.scale:g}"  # beside the training-size renders, not over them
     out_dir = ws.renders_dir(run, target)
     started = time.time()
     times, frames_rgb = [], []

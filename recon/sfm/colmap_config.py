@@ -36,6 +36,10 @@ class SfmConfig:
     )
     single_camera: bool = opt(True, "one camera shared by all photos of one size (one device)")
     try_harder: bool = opt(True, "retry with more features / other matcher if photos stay out")
+    min_registered: float = opt(
+        0.8,
+        "warn and exit with code 3 when fewer than this share of the usable photos register",
+    )
     min_image_side: int = opt(64, "photos with a shorter side below this (px) are skipped")
     seed: int = opt(0, "RANSAC and mapper seed (runs repeat bit for bit only with num_threads=1)")
     num_threads: int = opt(-1, "COLMAP threads (-1: all cores)")

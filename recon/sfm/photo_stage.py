@@ -24,6 +24,7 @@ from recon.sfm.stage import write_sfm_stage
 from recon.sfm.video import VIDEO_SUFFIXES, VideoConfig, is_video, validate_video_config
 from recon.sfm.video_extract import VideoFrames, extract_videos, video_report
 from recon.workspace import Workspace
+from recon.workspace.registration import registration_summary
 
 
 def video_files(source: Path) -> list[Path]:
@@ -151,6 +152,7 @@ def engine_to_workspace(
     }
     keep = {k: v for k, v in keep.items() if v.exists()} | (extra_copies or {})
     report = {k: v for k, v in result.report.items() if k != "paths"} | extra_report
+    report["registration"] = registration_summary(report, config.min_registered)
     label = "video" if Path(source).is_file() else "photos"
     return write_sfm_stage(
         ws,

@@ -82,6 +82,23 @@ def should_stop(cfg: TrainConfig, st: LoopState) -> str | None:
     return None
 
 
+def report_progress(progress, cfg: TrainConfig, st: LoopState, stats: dict) -> None:
+    """One progress update after a step: against the step count with --steps, else against the
+    time budget in seconds (so the bar's ETA is the time left), with the step, the training
+    PSNR and the best held-out PSNR so far."""
+    info = {
+        "psnr": stats.get("psnr"),
+        "test_psnr": None if st.best_psnr == -math.inf else round(st.best_psnr, 2),
+    }
+    if cfg.steps:
+        progress("train steps", st.step, cfg.steps, **info)
+    elif cfg.time_budget_s:
+        done = min(int(st.elapsed_s), int(cfg.time_budget_s))
+        progress("train s", done, int(cfg.time_budget_s), step=st.step, **info)
+    else:
+        progress("train steps", st.step, None, **info)
+
+
 def run_loop(
     model: Model,
     data: TrainData,
@@ -101,7 +118,6 @@ def run_loop(
     do non-finite parameters found before a checkpoint or at the end.
     """
     model.train()
-    total = cfg.steps or None
     clock = time.perf_counter()
 
     def tick() -> None:  # everything since the last tick counts towards elapsed_s
@@ -137,15 +153,7 @@ def run_loop(
         if st.step % 10 == 0 or st.step == 1:
             log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
         if progress is not None:
-            progress(
-                "train",
-                st.step,
-                total,
-                loss=stats.get("loss"),
-                psnr=stats.get("psnr"),
-                best_test_psnr=None if st.best_psnr == -math.inf else round(st.best_psnr, 2),
-                t=f"{st.wall_s:.0f}s",
-            )
+            report_progress(progress, cfg, st, stats)
         if st.wall_s - st.last_ckpt_wall >= cfg.checkpoint_every_s:
             require_finite_parameters(model, st, log)
             checkpoint(st)
@@ -202,8 +210,9 @@ def _remeasure_reserve(model, cams, imgs, st: LoopState, interrupted) -> None:
     (a full evaluation renders each once). Counted in elapsed_s like any evaluation."""
     t0 = time.perf_counter()
     heldout_psnr(model, cams[:1], imgs[:1], interrupted)
-    st.eval_cost_s = (time.perf_counter() - t0) * len(cams)
-    st.eval_total_s += time.perf_counter() - t0
+    one_view = time.perf_counter() - t0
+    st.eval_cost_s = one_view * len(cams)
+    st.eval_total_s += one_view
     st.eval_cost_wall = st.wall_s
 
 

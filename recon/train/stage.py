@@ -27,6 +27,7 @@ from recon.train.resolution import (
     working_resolution,
 )
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
+from recon.workspace.registration import partial_warning
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
 from recon.workspace.workspace import RUN_SCHEMA_VERSION, software_versions
 
@@ -155,6 +156,18 @@ def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progre
         raise
 
 
+def training_images_line(ws: Workspace, train: int, test: int) -> str:
+    """How many images the run trains on, and the sfm stage's warning when it registered
+    fewer than its --min-registered share of the photos (`recon.sfm.registration`)."""
+    line = f"training on {train} images ({test} held out)"
+    registration = {}
+    if ws.sfm_report.exists():
+        registration = json.loads(ws.sfm_report.read_text()).get("registration", {})
+    if registration.get("partial"):
+        line += f"; warning: sfm {partial_warning(registration)}"
+    return line
+
+
 def discard_unresumable_run(ws: Workspace, run: str) -> None:
     """A new run that failed before any checkpoint landed (disk full, unreadable scene) holds
     nothing to resume: remove it so a failed command leaves the workspace as it was."""
@@ -179,6 +192,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     if getattr(method_cfg, "schedule_steps", 0):
         log_fn(f"schedules laid out for a run of ~{method_cfg.schedule_steps} steps")
     data = load_train_data(ws, scene, "train", device, res.downscale)
+    log_fn(training_images_line(ws, len(data), len(scene.split("test"))))
     held = heldout_views(scene, cfg.eval_views)
     k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
     held_cams = scene.cameras(held, device, k_eval) if held else None
@@ -312,6 +326,11 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
             signal.signal(sig, handler)
     checkpoint(st)
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
+    t_finish = time.perf_counter()
+    finished = model.finish(data)
+    if finished:  # a last clean-up of the model (`Model.finish`), outside the time budget
+        finished["finish_s"] = round(time.perf_counter() - t_finish, 2)
+        log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "finish", **finished})
     log_file.close()
     save_model(ws.model_path(run), spec.name, asdict(method_cfg), model)
     summary = {

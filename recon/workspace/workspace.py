@@ -227,6 +227,14 @@ class Workspace:
         return self.root / "report.md"
 
     @property
+    def report_html(self) -> Path:
+        return self.root / "report.html"
+
+    @property
+    def sfm_plot(self) -> Path:
+        return self.root / "sfm_cameras.png"
+
+    @property
     def speed_plot(self) -> Path:
         return self.root / "speed_vs_error.png"
 
