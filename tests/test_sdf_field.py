@@ -110,3 +110,33 @@ def test_eikonal_loss_has_gradients_through_the_normal():
     _, grad, _ = sdf_and_gradient(field, x, create_graph=True)
     eikonal_loss(grad).backward()
     assert field.layers[0].weight.grad is not None and field.layers[0].weight.grad.abs().sum() > 0
+
+
+def test_eikonal_gradients_match_double_backward_through_the_torch_encoding_float64():
+    """The chain-rule gradient and its parameter gradients (an eikonal loss, the numba
+    Jacobian's table backward) against plain autograd in x through `hash_encode_torch`."""
+    torch.manual_seed(0)
+    field = SDFField(n_levels=3, log2_table_size=8, n_max=32, width=16).double()
+    with torch.no_grad():
+        field.grid.table.normal_(0.0, 0.05)
+        field.layers[0].weight.normal_(0.0, 0.2)
+    x = torch.rand(50, 3, generator=torch.Generator().manual_seed(3), dtype=F64) * 1.6 - 0.8
+
+    def loss_and_grads(gradient):
+        field.zero_grad()
+        sdf, grad, feature = gradient(x)
+        loss = eikonal_loss(grad) + sdf.square().mean() + feature.square().mean()
+        loss.backward()
+        return grad.detach(), {n: p.grad.clone() for n, p in field.named_parameters()}
+
+    def by_autograd(points):
+        points = points.clone().requires_grad_(True)  # x needs grad: the torch encoding
+        sdf, feature = field(points)
+        (grad,) = torch.autograd.grad(sdf.sum(), points, create_graph=True)
+        return sdf, grad, feature
+
+    grad, params = loss_and_grads(lambda p: sdf_and_gradient(field, p, create_graph=True))
+    twin_grad, twin_params = loss_and_grads(by_autograd)
+    torch.testing.assert_close(grad, twin_grad, rtol=1e-10, atol=1e-12)
+    for name in params:
+        torch.testing.assert_close(params[name], twin_params[name], rtol=1e-8, atol=1e-12)

@@ -11,9 +11,13 @@ set anywhere between radius 0.27 and beyond 0.8 depending on the direction.) The
 start N(0, sqrt(2 / width)) with zero bias, and the weights reading the hash features at zero.
 
 The gradient of the SDF (the surface normal, and the eikonal term
-E (||grad f|| - 1)^2 of Gropp et al. 2020, "IGR", eq. 2) is taken by autograd through the torch
-path of the hash encoding, with create_graph while training so the eikonal loss itself has
-gradients (double backward).
+E (||grad f|| - 1)^2 of Gropp et al. 2020, "IGR", eq. 2) is exact, by the chain rule:
+
+    grad f = x / |x| + d(MLP)/dx + d(MLP)/d(enc) J,   J = d(enc)/dx (the hash grid's, analytic)
+
+with d(MLP)/d(x, enc) by autograd through the small MLP (create_graph while training, so the
+eikonal loss has gradients: a double backward through the MLP only) and J from
+`hash_jacobian`, linear in the grid's table and differentiable in it.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from recon.fields.hashgrid import HashGrid
+from recon.fields.hashgrid import HashGrid, hash_jacobian
 
 SOFTPLUS_BETA = 100.0  # Softplus(100 x) / 100: ReLU-like with a smooth, non-zero second derivative
 
@@ -78,17 +82,36 @@ class SDFField(nn.Module):
     def sdf(self, x: Tensor) -> Tensor:
         return self(x)[0]
 
+    def with_gradient(self, x: Tensor, create_graph: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """(sdf (N,), grad_x sdf (N, 3), geometry feature) at x (N, 3) in [-1, 1]^3, the
+        gradient by the chain rule of the module docstring. create_graph: the gradient stays
+        differentiable in the parameters (training); x itself is data (no gradient)."""
+        x = x.detach()
+        u = (x + 1.0) / 2.0  # du/dx = 1/2
+        with torch.enable_grad():
+            h = torch.cat([x, self.grid(u)], dim=-1)
+            if not h.requires_grad:
+                h.requires_grad_(True)
+            z = h
+            for layer in self.layers[:-1]:
+                z = self.activation(layer(z))
+            out = self.layers[-1](z)
+            (g_h,) = torch.autograd.grad(out[:, 0].sum(), h, create_graph=create_graph)
+            jac = hash_jacobian(u, self.grid.table, self.grid.layout)  # (N, L F, 3)
+            radial = x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            grad = radial + g_h[:, :3] + 0.5 * torch.einsum("nj,nja->na", g_h[:, 3:], jac)
+        sdf = x.norm(dim=-1) - self.radius + out[:, 0]
+        if not create_graph:
+            return sdf.detach(), grad.detach(), out[:, 1:].detach()
+        return sdf, grad, out[:, 1:]
+
 
 def sdf_and_gradient(
-    field: nn.Module, x: Tensor, create_graph: bool
+    field: SDFField, x: Tensor, create_graph: bool
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(sdf (N,), grad_x sdf (N, 3), geometry feature) at x (N, 3). create_graph: keep the
     gradient differentiable (training, for the eikonal loss and normal-conditioned colour)."""
-    with torch.enable_grad():
-        x = x.detach().requires_grad_(True)
-        sdf, feature = field(x)
-        (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
-    return sdf, grad, feature
+    return field.with_gradient(x, create_graph)
 
 
 def eikonal_loss(grad: Tensor) -> Tensor:
