@@ -16,7 +16,8 @@ survivors. The colour MLP reads the geometry feature, the gradient grad f (the n
 Yariv et al. 2020, eq. 4 conditions the radiance on it) and the spherical-harmonic encoding of
 the view direction. The loss is the colour MSE plus the eikonal term of Gropp et al. 2020
 (eq. 2), lambda E(||grad f|| - 1)^2, on the rendered samples and on points drawn uniformly in
-the box; grad f is exact (double backward through the hash grid and MLP).
+the box; grad f is exact (the chain rule through the MLP and the hash grid's analytic
+Jacobian, `recon.fields.sdf`).
 
 An unbounded capture keeps the field in the scene box and learns what lies beyond it as an
 environment map of the view direction (`recon.models.background`), composited behind.
