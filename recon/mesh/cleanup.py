@@ -49,6 +49,62 @@ def remove_small_components(
     return _keep_faces(mesh, big[labels])
 
 
+def in_view(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, size) -> np.ndarray:
+    """(N,) bool: the points (N, 3) project inside a camera's image (width, height) in front of
+    it (OpenCV pinhole: x_cam = [R | t] x, (u, v) = K x_cam / z, pixels [0, W) x [0, H))."""
+    x = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = x[:, 2]
+    uv = x @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uv[:, 0] / z, uv[:, 1] / z
+    return (z > 0) & (u >= 0) & (u < size[0]) & (v >= 0) & (v < size[1])
+
+
+def visible_faces(
+    mesh: trimesh.Trimesh,
+    K: np.ndarray,
+    cam_from_world: np.ndarray,
+    sizes: np.ndarray,
+    tolerance: float,
+) -> np.ndarray:
+    """(F,) bool: the faces some camera sees. A face is seen when its centroid projects inside
+    an image, in front of the camera, no more than `tolerance` (world units, along the optical
+    axis) behind the nearest surface the z-buffer of the whole mesh holds at that pixel. The
+    back sheet of a density shell (marching cubes around a surface of some thickness) and
+    whatever the level set encloses are behind the front sheet from every camera."""
+    from recon.mesh.preview import shade_mesh  # the z-buffer rasterizer
+
+    vertices = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64)
+    centroids = vertices[faces].mean(axis=1)
+    seen = np.zeros(len(faces), bool)
+    for k, m, (w, h) in zip(K, cam_from_world, np.asarray(sizes, np.int64)):
+        k, m = np.asarray(k, np.float64), np.asarray(m, np.float64)
+        _, zbuf = shade_mesh(vertices, faces, k, m, int(w), int(h))
+        x = centroids @ m[:3, :3].T + m[:3, 3]
+        z = x[:, 2]
+        inside = in_view(centroids, k, m, (w, h))
+        uv = x[inside] @ k.T
+        u = np.floor(uv[:, 0] / uv[:, 2]).astype(np.int64)
+        v = np.floor(uv[:, 1] / uv[:, 2]).astype(np.int64)
+        front = z[inside] <= zbuf[v, u] + tolerance
+        seen[np.flatnonzero(inside)[front]] = True
+    return seen
+
+
+def keep_visible_faces(
+    mesh: trimesh.Trimesh,
+    K: np.ndarray,
+    cam_from_world: np.ndarray,
+    sizes: np.ndarray,
+    tolerance: float,
+) -> trimesh.Trimesh:
+    """The mesh without the faces no camera sees (`visible_faces`)."""
+    if len(mesh.faces) == 0:
+        return mesh.copy()
+    return _keep_faces(mesh, visible_faces(mesh, K, cam_from_world, sizes, tolerance))
+
+
 def mesh_stats(mesh: trimesh.Trimesh) -> dict:
     """Vertex / face / component counts, watertightness, area (and volume when closed)."""
     n_components = int(component_labels(mesh).max() + 1) if len(mesh.faces) else 0
