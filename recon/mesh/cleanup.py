@@ -49,17 +49,6 @@ def remove_small_components(
     return _keep_faces(mesh, big[labels])
 
 
-def in_view(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, size) -> np.ndarray:
-    """(N,) bool: the points (N, 3) project inside a camera's image (width, height) in front of
-    it (OpenCV pinhole: x_cam = [R | t] x, (u, v) = K x_cam / z, pixels [0, W) x [0, H))."""
-    x = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    z = x[:, 2]
-    uv = x @ K.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u, v = uv[:, 0] / z, uv[:, 1] / z
-    return (z > 0) & (u >= 0) & (u < size[0]) & (v >= 0) & (v < size[1])
-
-
 def visible_faces(
     mesh: trimesh.Trimesh,
     K: np.ndarray,
@@ -81,14 +70,14 @@ def visible_faces(
     for k, m, (w, h) in zip(K, cam_from_world, np.asarray(sizes, np.int64)):
         k, m = np.asarray(k, np.float64), np.asarray(m, np.float64)
         _, zbuf = shade_mesh(vertices, faces, k, m, int(w), int(h))
-        x = centroids @ m[:3, :3].T + m[:3, 3]
+        x = centroids @ m[:3, :3].T + m[:3, 3]  # x_cam = R x + t, (u, v) = K x_cam / z
         z = x[:, 2]
-        inside = in_view(centroids, k, m, (w, h))
-        uv = x[inside] @ k.T
-        u = np.floor(uv[:, 0] / uv[:, 2]).astype(np.int64)
-        v = np.floor(uv[:, 1] / uv[:, 2]).astype(np.int64)
-        front = z[inside] <= zbuf[v, u] + tolerance
-        seen[np.flatnonzero(inside)[front]] = True
+        uv = x @ k.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = np.floor(uv[:, 0] / z), np.floor(uv[:, 1] / z)
+        inside = np.flatnonzero((z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h))
+        ui, vi = u[inside].astype(np.int64), v[inside].astype(np.int64)
+        seen[inside[z[inside] <= zbuf[vi, ui] + tolerance]] = True
     return seen
 
 

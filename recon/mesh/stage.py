@@ -105,12 +105,12 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     if method == "auto":
         method = "tsdf"
     started = time.time()
+    side = float((aabb[1] - aabb[0]).max())  # the box's longest side
     if method == "marching-cubes":
         if not model.has_density:
             raise WorkspaceError(
                 f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf"
             )
-        side = float((aabb[1] - aabb[0]).max())
         threshold = cfg.threshold or soft_field_threshold(
             choose_density_threshold(side / cfg.resolution),
             rendered_surface_density(model, scene, cfg, device, level),
@@ -143,7 +143,6 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     raw_faces = len(mesh.faces)
     if cfg.visible_only and method == "marching-cubes":
         cams = scene.cameras(scene.split("train"), "cpu", level)
-        side = float((aabb[1] - aabb[0]).max())
         mesh = keep_visible_faces(
             mesh,
             cams.K.numpy(),
