@@ -4,6 +4,7 @@ import torch
 
 from recon.fields.voxels import SparseVoxelGrid, trilinear_corners
 from recon.models.plenoxel import PlenoxelConfig, PlenoxelModel
+from recon.models.raymarch import render_image
 from tests.conftest import sphere_scene
 
 
@@ -164,3 +165,53 @@ def test_numba_query_matches_torch_twin_values_and_gradients():
     grads_ref = torch.autograd.grad([(ref[n] * g[n]).sum() for n in ref], list(grid.data.values()))
     for a, b in zip(grads_fast, grads_ref):
         assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_one_pass_march_keeps_the_two_stage_samples():
+    """`kept_samples` (numba: march, density and termination in one pass, with or without the
+    live-cell test) gives the samples of marching everything and then terminating, with and
+    without jitter."""
+    model, data = trained_sphere(steps=80)
+    rays = data.rays()
+    o, d = rays["origins"][::7], rays["directions"][::7]
+    t_min, t_max, cone = model._ray_range(o, d)
+    for u in (None, torch.rand(o.shape[0], generator=torch.Generator().manual_seed(3))):
+        ri, t0, t1 = model.kept_samples(o, d, u)
+        ri2, s0, s1 = model._march_then_terminate(o, d, t_min, t_max, cone, u)
+        assert ri.numel() > 1000 and torch.equal(ri, ri2)
+        assert torch.allclose(t0, s0) and torch.allclose(t1, s1)
+
+
+def test_live_cells_are_the_cells_with_a_positive_vertex():
+    """A 4^3 lattice with one positive vertex (1, 2, 3): live are the 8 cells around it (those
+    with i in {0, 1}, j in {1, 2}, k in {2}; k = 3 is past the last cell)."""
+    model, _ = trained_sphere(steps=0)
+    r = 4
+    coords = torch.arange(r**3)
+    density = torch.full((r**3, 1), -1.0)
+    density[1 + r * (2 + r * 3)] = 0.5
+    sh = torch.zeros(r**3, model.grid.data["sh"].shape[1])
+    model.grid.set_rows(coords, {"density": density, "sh": sh}, r)
+    model._density_changed()
+    live = model.live_cells().view(r - 1, r - 1, r - 1)  # (k, j, i)
+    expected = torch.zeros_like(live)
+    expected[2, 1:3, 0:2] = True
+    assert torch.equal(live, expected)
+
+
+def test_one_pass_render_matches_the_sample_path_after_more_training():
+    """`render` on the CPU (`render_lattice`: no sample stored) against `render_rays` chunk by
+    chunk: the same rgb, opacity and (where something is hit) depth within float32 rounding, also after the density
+    changed under a cached `live_cells` (two more training steps)."""
+    model, data = trained_sphere(steps=80)
+    for extra in (0, 2):
+        for s in range(80, 80 + extra):
+            model.train_step(data, s)
+        for i in (0, 3):
+            fast = model.render(data.cameras[i])
+            slow = render_image(model._render_chunk, data.cameras[i].to("cpu"), model.cfg.chunk)
+            for k in ("rgb", "acc"):
+                assert (fast[k] - slow[k]).abs().max() < 1e-4, k
+            hit = slow["acc"] > 0.1  # depth = expected t / acc: compared where it is defined
+            assert (fast["depth"] - slow["depth"])[hit].abs().max() < 1e-4 * slow["depth"].max()
+            assert hit.sum() > 20

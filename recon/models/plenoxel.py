@@ -14,12 +14,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from recon.cameras import Cameras
-from recon.fields.sh import C0, eval_sh, num_sh_bases
+from recon.cameras import Cameras, camera_rays
+from recon.fields.sh import C0, eval_sh, num_sh_bases, sh_basis
 from recon.fields.voxel_kernels import corners
 from recon.fields.voxels import SparseVoxelGrid
 from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.plenoxel_march import Lattice, march_lattice_terminated, render_lattice
 from recon.models.raymarch import render_image
 from recon.models.schedules import exp_decay_lr
 from recon.options import opt
@@ -27,6 +28,7 @@ from recon.volrend import (
     OccupancyGrid,
     ray_aabb_intersect,
     scene_to_unit_cube,
+    surface_depth,
     terminated_mask,
     volume_render,
 )
@@ -87,6 +89,7 @@ class PlenoxelModel(Model):
         self.occupancy = OccupancyGrid(cfg.occupancy_res)
         self.generator = torch.Generator().manual_seed(0)
         self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
+        self._live: Tensor | None = None  # `live_cells`, computed on demand
         self._make_optimizer()
 
     # ---- field ---------------------------------------------------------------------------
@@ -133,28 +136,77 @@ class PlenoxelModel(Model):
         side = float((self.aabb[1] - self.aabb[0]).max())
         return self.cfg.step_voxels * side / self.res
 
-    def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:
+    def _ray_range(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, float]:
+        """(t_min, t_max, cone angle) of each ray (R,): the scene box (bounded) or [near, far]."""
         R = origins.shape[0]
         if self.scene.unbounded:
             t_min = torch.full((R,), self.scene.near, device=origins.device)
             t_max = torch.full((R,), self.scene.far, device=origins.device)
-            cone = self.cfg.cone_angle or 1.0 / 256
-        else:
-            t_min, t_max, _ = ray_aabb_intersect(origins, dirs, self.aabb)
-            t_min = t_min.clamp_min(self.scene.near)
-            cone = self.cfg.cone_angle
-        u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
+            return t_min, t_max, self.cfg.cone_angle or 1.0 / 256
+        t_min, t_max, _ = ray_aabb_intersect(origins, dirs, self.aabb)
+        return t_min.clamp_min(self.scene.near), t_max, self.cfg.cone_angle
+
+    @torch.no_grad()
+    def kept_samples(self, origins: Tensor, dirs: Tensor, u: Tensor | None):
+        """The samples a render keeps: occupied, sigma > 0 and T >= eps (early termination),
+        packed (ray_indices, t_starts, t_ends). One numba pass on the CPU
+        (`plenoxel_march.march_lattice_terminated`), else `_march_then_terminate`."""
+        t_min, t_max, cone = self._ray_range(origins, dirs)
+        if origins.device.type != "cpu":
+            return self._march_then_terminate(origins, dirs, t_min, t_max, cone, u)
+        live = (
+            None if u is not None else self.live_cells()
+        )  # training (jittered): the density moves
+        return march_lattice_terminated(origins, dirs, t_min, t_max, u, self._lattice(cone, live))
+
+    def _lattice(self, cone: float, live: Tensor | None) -> Lattice:
+        """The model's grids as the one-pass kernels read them (`plenoxel_march.Lattice`)."""
+        return Lattice(
+            self.occupancy.occupied, self.occupancy.resolution, live, self.aabb,
+            self.scene.unbounded, self._step_t(), cone, self.grid.links,
+            self.grid.data["density"][:, 0], self.res, self._density_scale(),
+            self.cfg.eps_transmittance,
+        )  # fmt: skip
+
+    @torch.no_grad()
+    def live_cells(self) -> Tensor:
+        """((res - 1)^3,) bool: the lattice cells with a vertex of positive density, the only
+        ones where sigma > 0 (cell (i, j, k) at i + (res - 1) (j + (res - 1) k)). Kept until
+        the density changes: every method that changes it calls `_density_changed`."""
+        if self._live is None:
+            r, density = self.res, self.grid.data["density"].detach()[:, 0]
+            positive = torch.zeros(r**3, dtype=torch.bool, device=density.device)
+            positive[self.grid.coords[density > 0]] = True
+            v = positive.view(r, r, r)  # (k, j, i)
+            live = torch.zeros((r - 1,) * 3, dtype=torch.bool, device=density.device)
+            for dk in (0, 1):
+                for dj in (0, 1):
+                    for di in (0, 1):
+                        live |= v[dk : r - 1 + dk, dj : r - 1 + dj, di : r - 1 + di]
+            self._live = live.reshape(-1)
+        return self._live
+
+    def _density_changed(self) -> None:
+        self._live = None
+
+    @torch.no_grad()
+    def _march_then_terminate(self, origins, dirs, t_min, t_max, cone, u):
+        """`kept_samples` in two stages: march every occupied sample, evaluate the density of
+        all of them, then drop those with sigma = 0 or behind T < eps (`terminated_mask`)."""
         ray_idx, t0, t1 = self.occupancy.march(
             origins, dirs, t_min, t_max, self.aabb, self.scene.unbounded, self._step_t(), cone, u
         )
         if ray_idx.numel():
-            with torch.no_grad():  # cheap density pre-pass for early termination
-                mids = 0.5 * (t0 + t1)
-                sig = self._sigma_unit(
-                    self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx])
-                )
-                keep = terminated_mask(sig, t0, t1, ray_idx, self.cfg.eps_transmittance) & (sig > 0)
+            mids = 0.5 * (t0 + t1)
+            sig = self._sigma_unit(self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx]))
+            keep = terminated_mask(sig, t0, t1, ray_idx, self.cfg.eps_transmittance) & (sig > 0)
             ray_idx, t0, t1 = ray_idx[keep], t0[keep], t1[keep]
+        return ray_idx, t0, t1
+
+    def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:
+        R = origins.shape[0]
+        u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
+        ray_idx, t0, t1 = self.kept_samples(origins, dirs, u)
         mids = 0.5 * (t0 + t1)
         x = origins[ray_idx] + mids[:, None] * dirs[ray_idx]
         rgb, sigma = self._rgb_sigma(x, dirs[ray_idx])
@@ -263,9 +315,11 @@ class PlenoxelModel(Model):
         keep = near.reshape(-1)[self.grid.coords] > threshold
         if int(keep.sum()) >= 8:
             self.grid.prune(keep)
+            self._density_changed()
             self._make_optimizer()
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+        self._density_changed()
         self._maybe_upsample(step)
         if step % self.cfg.occupancy_every == 0:
             cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
@@ -301,11 +355,28 @@ class PlenoxelModel(Model):
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
-        def rays(origins: Tensor, directions: Tensor):
-            out = self.render_rays(origins, directions, jitter=False)
-            return out["rgb"], out["depth"], out["acc"]
+        """Camera 0's image: on the CPU one numba pass per ray (`plenoxel_march.render_lattice`,
+        no sample ever stored), elsewhere `render_rays` chunk by chunk; the same pixels."""
+        if self.aabb.device.type != "cpu":
+            return render_image(self._render_chunk, camera, self.cfg.chunk)
+        origins, dirs, z_per_t = camera_rays(camera, 0)
+        H, W = z_per_t.shape
+        o, d = origins.reshape(-1, 3).float(), dirs.reshape(-1, 3).float()
+        rgb, t, acc = self._render_fused(o, d)
+        depth = surface_depth(t, acc) * z_per_t.reshape(-1).to(t)
+        return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
 
-        return render_image(rays, camera, self.cfg.chunk)
+    def _render_chunk(self, origins: Tensor, directions: Tensor):
+        out = self.render_rays(origins, directions, jitter=False)
+        return out["rgb"], out["depth"], out["acc"]
+
+    def _render_fused(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(rgb (R, 3), expected t (R,), acc (R,)) of CPU rays, as `render_rays` gives them."""
+        t_min, t_max, cone = self._ray_range(origins, dirs)
+        basis = sh_basis(self.cfg.sh_degree, dirs)
+        lattice = self._lattice(cone, self.live_cells())
+        sh = self.grid.data["sh"]
+        return render_lattice(origins, dirs, t_min, t_max, basis, sh, self.background, lattice)
 
     # ---- state ---------------------------------------------------------------------------
     def file_state(self) -> dict:
@@ -330,6 +401,7 @@ class PlenoxelModel(Model):
         coords = state["grid.coords"].long()
         values = {n: state[f"grid.data.{n}"].float() for n in self.grid.data}
         self.grid.set_rows(coords, values, res)
+        self._density_changed()
         state.update({"grid.coords": coords, "grid.links": self.grid.links})
         state.update({f"grid.data.{n}": v for n, v in values.items()})
         self._make_optimizer()
