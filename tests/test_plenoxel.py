@@ -126,18 +126,28 @@ def test_finish_prunes_unseen_vertices_and_keeps_the_renders():
 
 
 def test_file_state_round_trip():
-    """model.pt's smaller form (no links table, int32 coords, float16 SH) loads back to the
-    same grid and renders within 1e-3 (float16 SH) of the model it came from."""
+    """model.pt's small form (vertex bitmask, float16 density, int8 SH, deflated) loads back to
+    the same lattice (rows in ascending vertex order), density to float16 rounding, SH to half
+    a quantisation step, and renders within 5e-3 of the model it came from; the state_dict of a
+    checkpoint still loads exactly."""
     model, data = trained_sphere(steps=80)
     state = model.file_state()
-    assert "grid.links" not in state and state["grid.data.sh"].dtype == torch.float16
+    assert not {"grid.links", "grid.coords", "grid.data.sh"} & set(state)
     fresh = PlenoxelModel(model.cfg, model.scene)
     fresh.load_state_dict(state)
-    assert fresh.res == model.res and torch.equal(fresh.grid.links, model.grid.links)
-    assert torch.equal(fresh.grid.data["density"], model.grid.data["density"])
+    order = torch.argsort(model.grid.coords)
+    assert fresh.res == model.res and torch.equal(fresh.grid.coords, model.grid.coords[order])
+    density = model.grid.data["density"].detach()[order]
+    assert torch.equal(fresh.grid.data["density"], density.half().float())
+    sh = model.grid.data["sh"].detach()[order]
+    step = sh.abs().amax(dim=0) / 127
+    assert ((fresh.grid.data["sh"] - sh).abs() <= step / 2 + 1e-7).all()
     for i in (0, 3):
         a, b = model.render(data.cameras[i])["rgb"], fresh.render(data.cameras[i])["rgb"]
-        assert (a - b).abs().max() < 1e-3
+        assert (a - b).abs().max() < 5e-3
+    exact = PlenoxelModel(model.cfg, model.scene)
+    exact.load_state_dict(model.state_dict())
+    assert torch.equal(exact.grid.data["sh"], model.grid.data["sh"])
 
 
 def test_numba_query_matches_torch_twin_values_and_gradients():
