@@ -110,7 +110,7 @@ def test_finish_prunes_unseen_vertices_and_keeps_the_renders():
     """The inside of the sphere and space no ray reaches go; every training view renders the
     same within a small tolerance (what is pruned took weight < 0.001 on every ray traced).
     (lego-200 at 256^3: 3.65 M -> 1.93 M vertices, test PSNR -0.006 dB.)"""
-    model, data = trained_sphere(finish_ray_stride=1)
+    model, data = trained_sphere(finish_ray_stride=1, upsample_prune_unseen=False)
     before = [model.render(data.cameras[i])["rgb"] for i in range(len(data))]
     rows = model.grid.num_rows
     stats = model.finish(data)
@@ -225,3 +225,14 @@ def test_one_pass_render_matches_the_sample_path_after_more_training():
             hit = slow["acc"] > 0.1  # depth = expected t / acc: compared where it is defined
             assert (fast["depth"] - slow["depth"])[hit].abs().max() < 1e-4 * slow["depth"].max()
             assert hit.sum() > 20
+
+
+def test_upsampling_keeps_only_what_the_training_rays_see():
+    """With upsample_prune_unseen the finer lattice (from step 60) holds far fewer rows than
+    without, and the two models trained the same way render the training views alike."""
+    on, data = trained_sphere(steps=61, finish_ray_stride=1)
+    off, _ = trained_sphere(steps=61, finish_ray_stride=1, upsample_prune_unseen=False)
+    assert on.res == off.res == 32 and on.grid.num_rows < 0.8 * off.grid.num_rows
+    for i in range(0, len(data), 3):
+        a, b = on.render(data.cameras[i])["rgb"], off.render(data.cameras[i])["rgb"]
+        assert (a - b).abs().mean() < 5e-3

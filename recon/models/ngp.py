@@ -342,7 +342,7 @@ class NGPModel(Model):
             )
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         n_rays = self.n_rays
-        batch = sample_rays(data.rays(), n_rays, self.generator)
+        batch = sample_rays(data, n_rays, self.generator)
         out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"])
         n_samples = ri.shape[0]
         mse = torch.mean((out.rgb - batch["rgb"]) ** 2)

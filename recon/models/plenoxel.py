@@ -29,7 +29,7 @@ from recon.io.packed import (
 from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.plenoxel_march import Lattice, march_lattice_terminated, render_lattice
-from recon.models.raymarch import render_image
+from recon.models.raymarch import render_image, sample_rays
 from recon.models.schedules import exp_decay_lr
 from recon.options import opt
 from recon.volrend import (
@@ -76,7 +76,7 @@ class PlenoxelConfig:
     )
     upsample_prune_unseen: bool = opt(
         True,
-        "before each upsampling, prune what no training ray sees (as finish_weight does at the end): the finer lattice, its optimizer state and its file hold only that",
+        "right after each upsampling, prune what no training ray sees (as finish_weight does at the end): the finer lattice's optimizer state and steps hold only that",
     )
     finish_ray_stride: int = opt(
         2, "the final pruning traces every N-th pixel of each row and column of the views"
@@ -266,9 +266,12 @@ class PlenoxelModel(Model):
         objects and the space behind what the cameras see."""
         s = max(1, self.cfg.finish_ray_stride)
         C, H, W, _ = data.images.shape
-        rays = data.rays()
-        pick = lambda t: t.reshape(C, H, W, 3)[:, ::s, ::s].reshape(-1, 3)
-        best = self.vertex_weights(pick(rays["origins"]), pick(rays["directions"]))
+        pixels = torch.arange(data.num_pixels).reshape(C, H, W)[:, ::s, ::s].reshape(-1)
+        best = None
+        for part in pixels.split(1 << 18):
+            rays = data.rays_at(part)
+            w = self.vertex_weights(rays["origins"], rays["directions"])
+            best = w if best is None else torch.maximum(best, w)
         self._prune_neighbourhood((best >= self.cfg.finish_weight).float(), 0.0)
 
     # ---- training ------------------------------------------------------------------------
@@ -285,18 +288,29 @@ class PlenoxelModel(Model):
         )
         self._base_lrs = [self.cfg.lr_density, self.cfg.lr_sh]
 
-    def _tv_loss(self) -> Tensor:
+    @torch.no_grad()
+    def _tv_step(self) -> float:
+        """The total-variation term w mean_(pairs, channels) (p_a - p_b)^2 over the +x/+y/+z
+        neighbour pairs of a random tv_fraction of the rows (Fridovich-Keil et al. 2022, eq. 4):
+        its gradient +-2 w (p_a - p_b) / (P C) is added to each data row's .grad in place (no
+        dense (M, C) gradient per term, as autograd through index_select would allocate).
+        Returns the term's value."""
         M = self.grid.num_rows
         k = max(1, int(self.cfg.tv_fraction * M))
         rows = torch.randint(0, M, (k,), generator=self.generator).to(self.grid.links.device)
         a, b = self.grid.neighbour_pairs(rows)
         if a.numel() == 0:
-            return torch.zeros((), device=self.aabb.device)
+            return 0.0
         loss = 0.0
         for name, w in (("density", self.cfg.tv_density), ("sh", self.cfg.tv_sh)):
             p = self.grid.data[name]
-            diff = p.index_select(0, a) - p.index_select(0, b)  # backward index_add: deterministic
-            loss = loss + w * diff.pow(2).mean()
+            diff = p.index_select(0, a) - p.index_select(0, b)
+            loss += w * float(diff.pow(2).mean())
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+            g = diff * (2 * w / diff.numel())
+            p.grad.index_add_(0, a, g)  # index_add: deterministic on multi-threaded CPUs
+            p.grad.index_add_(0, b, -g)
         return loss
 
     def _maybe_upsample(self, step: int, data: TrainData) -> None:
@@ -306,8 +320,6 @@ class PlenoxelModel(Model):
             and lvl < len(self.cfg.upsample_steps)
             and step >= self.cfg.upsample_steps[lvl]
         ):
-            if self.cfg.upsample_prune_unseen and self.cfg.finish_weight > 0:
-                self.prune_unseen(data)  # the finer lattice is built only where rays see
             self.prune()
             new_res = self.cfg.resolutions[lvl + 1]
             scale = (
@@ -316,6 +328,9 @@ class PlenoxelModel(Model):
             self.grid.upsample(new_res, lambda occ: occ)
             self.grid.data["density"].data /= scale
             self.level.fill_(lvl + 1)
+            self._density_changed()
+            if self.cfg.upsample_prune_unseen and self.cfg.finish_weight > 0:
+                self.prune_unseen(data)  # before the finer lattice's optimizer state exists
             self._make_optimizer()
 
     @torch.no_grad()
@@ -345,15 +360,13 @@ class PlenoxelModel(Model):
             self.occupancy.update(
                 self._sigma_unit, cell, warmup=step < 32, generator=self.generator
             )
-        rays = data.rays()
-        n = rays["rgb"].shape[0]
         n_rays = self.n_rays
-        idx = torch.randint(0, n, (n_rays,), generator=self.generator).to(rays["rgb"].device)
-        out = self.render_rays(rays["origins"][idx], rays["directions"][idx], jitter=True)
-        mse = F.mse_loss(out["rgb"], rays["rgb"][idx])
-        loss = mse + self._tv_loss()
+        batch = sample_rays(data, n_rays, self.generator)
+        out = self.render_rays(batch["origins"], batch["directions"], jitter=True)
+        mse = F.mse_loss(out["rgb"], batch["rgb"])
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        mse.backward()
+        loss = mse.detach() + self._tv_step()
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
             g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
         self.optimizer.step()
