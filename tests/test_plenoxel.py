@@ -236,3 +236,28 @@ def test_upsampling_keeps_only_what_the_training_rays_see():
     for i in range(0, len(data), 3):
         a, b = on.render(data.cameras[i])["rgb"], off.render(data.cameras[i])["rgb"]
         assert (a - b).abs().mean() < 5e-3
+
+
+def test_one_pass_paths_match_the_sample_paths_on_an_unbounded_scene():
+    """The same twins with the contraction and cone-growing steps of an unbounded capture (the
+    sphere's cameras, far plane 6): kept samples equal, renders within float32 rounding."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    data, info = sphere_scene()
+    info = dataclasses.replace(info, unbounded=True, far=6.0)
+    model = PlenoxelModel(sphere_config(), info)
+    for s in range(40):
+        model.train_step(data, s)
+    rays = data.rays()
+    o, d = rays["origins"][::5], rays["directions"][::5]
+    t_min, t_max, cone = model._ray_range(o, d)
+    assert cone > 0
+    ri, t0, t1 = model.kept_samples(o, d, None)
+    ri2, s0, s1 = model._march_then_terminate(o, d, t_min, t_max, cone, None)
+    assert ri.numel() > 500 and torch.equal(ri, ri2)
+    assert torch.allclose(t0, s0) and torch.allclose(t1, s1)
+    fast = model.render(data.cameras[2])
+    slow = render_image(model._render_chunk, data.cameras[2], model.cfg.chunk)
+    assert (fast["rgb"] - slow["rgb"]).abs().max() < 1e-4
+    assert (fast["acc"] - slow["acc"]).abs().max() < 1e-4
