@@ -1,14 +1,16 @@
-"""The plenoxel march on the CPU in one pass (numba): step through the occupied cells
+"""Plenoxel rays on the CPU in one pass (numba): step through the occupied cells
 (`volrend.march_kernels`), read the density of the sparse lattice at each sample
 (`fields.voxel_kernels.lattice_value`), and stop each ray once its transmittance falls below
-eps, emitting only the samples the render keeps.
+eps. `march_lattice_terminated` emits the samples kept (a training step's, which then go
+through autograd); `render_lattice` also colours and composites them in the same loop, so a
+render stores no sample at all.
 
-The two-stage path it replaces (`PlenoxelModel._march_then_terminate`, also the path off the
+The two-stage path they replace (`PlenoxelModel._march_then_terminate`, also the path off the
 CPU and the twin in `tests/test_plenoxel.py`) marches every occupied sample of every ray,
 evaluates the density of all of them and only then drops those behind T < eps (early ray
-termination, Levoy 1990, "Efficient Ray Tracing of Volume Data", sec. 4): on a trained lego
-lattice ~90 % of the samples it materialises lie behind the surface. Both keep sample i of a
-ray iff sigma_i > 0 and T_i = exp(-sum_{j<i} min(sigma_j delta_j, 50)) >= eps.
+termination, Levoy 1990, "Efficient Ray Tracing of Volume Data", sec. 4): on the trained lego
+lattice a 200 x 200 view marches 1.28 M occupied samples and keeps 0.38 M. Both keep sample i
+of a ray iff sigma_i > 0 and T_i = exp(-sum_{j<i} min(sigma_j delta_j, 50)) >= eps.
 """
 
 from __future__ import annotations
@@ -39,9 +41,7 @@ def _march_ray(
     min_depth = -math.log(eps)  # T < eps  <=>  optical depth > -log eps
     depth = 0.0
     n = 0
-    k = -1
-    while k + 1 < count:
-        k += 1
+    for k in range(count):
         start = t_min if k == 0 else unwarp(s_min + k - u, step, cone, t_far)
         end = min(unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
         if not end > start:
