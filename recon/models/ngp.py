@@ -259,13 +259,14 @@ class NGPModel(Model):
         ids = torch.arange(origins.shape[0], device=origins.device)
         return self._march_fn(origins, directions, jitter)(ids, self.cfg.max_samples_per_ray)
 
-    def _kept_samples(self, origins: Tensor, directions: Tensor, jitter: bool):
+    def _kept_samples(self, origins: Tensor, directions: Tensor, jitter: bool, density=None):
         """The occupied samples early termination keeps, the density evaluated without
         gradients and only as far along each ray as needed (`march_terminated`).
-        -> (ray_indices, t_starts, t_ends, unit-cube midpoints, densities evaluated)."""
+        -> (ray_indices, t_starts, t_ends, unit-cube midpoints, densities evaluated); with
+        density = `field.geometry` also the kept samples' sigmas and features before the count."""
         return march_terminated(
             self._march_fn(origins, directions, jitter),
-            self.field.sigma,
+            density or self.field.sigma,
             origins.shape[0],
             self.cfg.eps_transmittance,
             TERMINATION_FIRST_SAMPLES,
@@ -314,14 +315,8 @@ class NGPModel(Model):
     def _render_rays_eval(self, origins: Tensor, directions: Tensor):
         """The kept samples of `march_terminated` with the field's geometry (density and
         features) evaluated once, in its rounds; then the colour on the kept samples alone."""
-        ri, t0, t1, _, sigma, geo, _ = march_terminated(
-            self._march_fn(origins, directions, jitter=False),
-            self.field.geometry,
-            origins.shape[0],
-            self.cfg.eps_transmittance,
-            TERMINATION_FIRST_SAMPLES,
-            self.cfg.max_samples_per_ray,
-            origins.device,
+        ri, t0, t1, _, sigma, geo, _ = self._kept_samples(
+            origins, directions, jitter=False, density=self.field.geometry
         )
         rgb = self.field.color(geo, self.field.encode_directions(directions)[ri])
         return volume_render(

@@ -166,9 +166,7 @@ class PlenoxelModel(Model):
         t_min, t_max, cone = self._ray_range(origins, dirs)
         if origins.device.type != "cpu":
             return self._march_then_terminate(origins, dirs, t_min, t_max, cone, u)
-        live = (
-            None if u is not None else self.live_cells()
-        )  # training (jittered): the density moves
+        live = None if u is not None else self.live_cells()  # jittered: a training step
         return march_lattice_terminated(origins, dirs, t_min, t_max, u, self._lattice(cone, live))
 
     def _lattice(self, cone: float, live: Tensor | None) -> Lattice:
@@ -353,7 +351,6 @@ class PlenoxelModel(Model):
             self._make_optimizer()
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
-        self._density_changed()
         self._maybe_upsample(step, data)
         if step % self.cfg.occupancy_every == 0:
             cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
@@ -370,6 +367,7 @@ class PlenoxelModel(Model):
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
             g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
         self.optimizer.step()
+        self._density_changed()
         if (
             self.cfg.samples_per_batch > 0
         ):  # Instant-NGP: a fixed sample budget per step, not fixed rays

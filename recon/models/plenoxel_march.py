@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from recon.fields.voxel_kernels import lattice_cell, lattice_cell_index, lattice_value
-from recon.volrend.march_kernels import cell_occupied, unit_point, unwarp, warp
+from recon.volrend.march_kernels import cell_occupied, march_interval, unit_point, warp
 from recon.volrend.volrend import _TAU_CAP
 
 
@@ -42,8 +42,7 @@ def _march_ray(
     depth = 0.0
     n = 0
     for k in range(count):
-        start = t_min if k == 0 else unwarp(s_min + k - u, step, cone, t_far)
-        end = min(unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
+        start, end = march_interval(k, t_min, t_max, s_min, u, step, cone, t_far)
         if not end > start:
             continue
         x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded)
@@ -172,8 +171,7 @@ def _render(origins, dirs, t_min, t_max, basis, spacing, lo, hi, unbounded, occ,
             count = max(int(math.ceil(max(s_max - s_min, 0.0))), 1)  # noqa: RUF046
             depth = 0.0
             for k in range(count):
-                start = t0 if k == 0 else unwarp(s_min + k, step, cone, t_far)
-                end = min(unwarp(s_min + k + 1.0, step, cone, t_far), t1)
+                start, end = march_interval(k, t0, t1, s_min, 0.0, step, cone, t_far)
                 if not end > start:
                     continue
                 mid = 0.5 * (start + end)

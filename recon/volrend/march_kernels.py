@@ -46,6 +46,14 @@ def unwarp(s, step, cone, t_far):
 
 
 @numba.njit(cache=True, inline="always")
+def march_interval(k, t_min, t_max, s_min, u, step, cone, t_far):
+    """Interval k of a ray's march (`occupancy.march_intervals`): from t_min (k = 0) or the
+    unwarped s_min + k - u to the unwarped s_min + k + 1 - u, clipped at t_max."""
+    start = t_min if k == 0 else unwarp(s_min + k - u, step, cone, t_far)
+    return start, min(unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
+
+
+@numba.njit(cache=True, inline="always")
 def unit_point(o, d, t, lo, hi, unbounded):
     """The point o + t d mapped to the unit cube as `scene_to_unit_cube` does -> (x0, x1, x2);
     x0 = -1 when it falls outside the cube."""
@@ -106,8 +114,7 @@ def _march_ray(
     count = max(count, 1)
     n = 0
     for k in range(count):
-        start = t_min if k == 0 else unwarp(s_min + k - u, step, cone, t_far)
-        end = min(unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
+        start, end = march_interval(k, t_min, t_max, s_min, u, step, cone, t_far)
         if not end > start:
             continue
         x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded)
