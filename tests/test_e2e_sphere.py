@@ -102,12 +102,18 @@ def test_render_writes_png_and_metric_depth(trained):
 
 
 def test_mesh_and_eval_against_ground_truth(trained):
-    mesh = json.loads(
-        recon_cli(
-            "mesh", "-w", str(trained), "--run", "plenoxel", "--resolution", "64", "--json"
-        ).stdout
-    )
-    assert mesh["faces"] > 100
+    def mesh_json(*extra):
+        out = recon_cli(
+            "mesh", "-w", str(trained), "--run", "plenoxel", "--resolution", "64", "--json",
+            "--force", *extra,
+        )  # fmt: skip
+        return json.loads(out.stdout)
+
+    level_set = mesh_json("--method", "marching-cubes")
+    assert level_set["method"] == "marching-cubes"
+    assert 0 < level_set["visible_faces"] <= level_set["faces_before_cleanup"]
+    mesh = mesh_json()  # auto: TSDF fusion for every method
+    assert mesh["method"] == "tsdf" and mesh["faces"] > 100
     res = json.loads(recon_cli("eval", "-w", str(trained), "--json").stdout)["plenoxel"]
     assert res["mean"]["psnr"] > 18 and 0 < res["mean"]["ssim"] <= 1
     assert res["geometry"]["status"] == "ok" and res["geometry"]["chamfer"] < 0.1

@@ -7,9 +7,11 @@ from recon.mesh.cleanup import (
     in_view,
     keep_largest_components,
     keep_seen_components,
+    keep_visible_faces,
     mesh_stats,
     remove_small_components,
     transform_mesh,
+    visible_faces,
     write_mesh,
 )
 
@@ -105,3 +107,33 @@ def test_keep_seen_components_drops_what_no_camera_sees():
         mesh, np.array([[[50.0, 0, 10], [0, 50, 8], [0, 0, 1]]]), cam_from_world[None], narrow
     )
     assert mesh_stats(kept)["components"] == 1 and len(kept.faces) == 1280
+
+
+def _slab(z_front, z_back, half=0.5):
+    """Two parallel squares (a shell's front and back sheets) facing a camera at the origin."""
+    v = []
+    for z in (z_front, z_back):
+        v += [[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]]
+    f = [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]
+    return trimesh.Trimesh(np.array(v, float), np.array(f), process=False)
+
+
+def test_visible_faces_drop_the_back_sheet_of_a_shell_and_keep_what_a_camera_sees():
+    K = np.array([[[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]]])
+    eye = np.eye(4)[None]
+    slab = _slab(2.0, 2.1)
+    seen = visible_faces(slab, K, eye, np.array([[100, 100]]), tolerance=0.05)
+    assert seen.tolist() == [True, True, False, False]
+    # within the tolerance both sheets count as the surface
+    assert visible_faces(slab, K, eye, np.array([[100, 100]]), tolerance=0.2).all()
+    # a second camera behind the slab, looking back at it (turned 180 deg about y), sees the back
+    behind = np.eye(4)
+    behind[:3, :3] = np.diag([-1.0, 1.0, -1.0])
+    behind[:3, 3] = [0.0, 0.0, 4.1]  # x_cam = R x + t: the back sheet at depth 2, the front 2.1
+    both = visible_faces(
+        slab, np.r_[K, K], np.r_[eye, behind[None]], np.array([[100, 100]] * 2), 0.05
+    )
+    assert both.all()
+    kept = keep_visible_faces(slab, K, eye, np.array([[100, 100]]), tolerance=0.05)
+    assert len(kept.faces) == 2 and len(kept.vertices) == 4
+    assert np.allclose(kept.vertices[:, 2], 2.0)

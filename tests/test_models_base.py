@@ -1,4 +1,4 @@
-"""TrainData: the packed ray table and the area-downsampled levels of coarse-to-fine training."""
+"""TrainData: rays of training pixels on demand and the area-downsampled levels of coarse-to-fine training."""
 
 import torch
 
@@ -32,3 +32,23 @@ def test_downsampled_rays_match_the_level():
     assert rays["origins"].shape == (2 * 2 * 3, 3) and torch.equal(
         rays["rgb"], half.images.reshape(-1, 3)
     )
+
+
+def test_rays_at_worked_example_and_camera_rays():
+    """Index 7 of 2 views of 2 x 3 pixels is camera 1, row 0, column 1: its ray passes through
+    the pixel centre (1.5, 0.5); every pixel's ray equals `camera_rays` of its view."""
+    from recon.cameras import camera_rays
+
+    data = _data(h=2, w=3)
+    data.cameras.cam_from_world[1, :3, 3] = torch.tensor([-1.0, -2.0, -3.0])  # centre (1, 2, 3)
+    ray = data.rays_at(torch.tensor([7]))
+    assert ray["camera"].tolist() == [1] and torch.equal(ray["rgb"][0], data.images[1, 0, 1])
+    K = data.cameras.K[1]
+    through = torch.tensor([(1.5 - K[0, 2]) / K[0, 0], (0.5 - K[1, 2]) / K[1, 1], 1.0])
+    assert torch.allclose(ray["directions"][0], through / through.norm())
+    assert ray["origins"][0].tolist() == [1.0, 2.0, 3.0]
+    rays = data.rays()
+    for c in range(2):
+        _, d, z = camera_rays(data.cameras, c)
+        assert torch.allclose(rays["directions"][6 * c : 6 * c + 6], d.reshape(-1, 3))
+        assert torch.allclose(rays["z_per_t"][6 * c : 6 * c + 6], z.reshape(-1))

@@ -187,6 +187,12 @@ def _march_with_termination_twin(density, first, max_samples):
     got = march_terminated(march, sigma, o.shape[0], 1e-4, first, max_samples)
     for a, b in zip(got[:4], (ri[keep], t0[keep], t1[keep], x[keep])):
         assert torch.equal(a, b)
+    # a density closure with features: the same samples, with their sigmas and features
+    both = march_terminated(
+        march, lambda x: (sigma(x), 3 * x), o.shape[0], 1e-4, first, max_samples
+    )  # fmt: skip
+    for a, b in zip(both, (*got[:4], sigma(x[keep]), 3 * x[keep], got[4])):
+        assert torch.equal(torch.as_tensor(a), torch.as_tensor(b))
     return got[4], ri.shape[0], int(keep.sum())
 
 

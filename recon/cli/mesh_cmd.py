@@ -22,6 +22,8 @@ from recon.workspace import Workspace
 @config_option(MeshConfig, "threshold_views")
 @config_option(MeshConfig, "truncation")
 @config_option(MeshConfig, "min_component")
+@config_option(MeshConfig, "visible_only")
+@config_option(MeshConfig, "visible_tolerance")
 @config_option(MeshConfig, "format")
 @config_option(MeshConfig, "previews", type=click.IntRange(0))
 @config_option(MeshConfig, "preview_max_side", type=click.IntRange(16))

@@ -15,18 +15,49 @@ import torch
 from torch import Tensor
 
 
+@numba.njit(cache=True, inline="always")
+def lattice_cell(x0, x1, x2, res):
+    """`voxels.trilinear_corners` for one point: the lower vertex (i0, i1, i2) of its cell and
+    the fractions (f0, f1, f2), x clamped to [0, 1]."""
+    g0 = min(max(x0, 0.0), 1.0) * (res - 1)
+    g1 = min(max(x1, 0.0), 1.0) * (res - 1)
+    g2 = min(max(x2, 0.0), 1.0) * (res - 1)
+    i0 = min(int(g0), res - 2)
+    i1 = min(int(g1), res - 2)
+    i2 = min(int(g2), res - 2)
+    return i0, i1, i2, g0 - i0, g1 - i1, g2 - i2
+
+
+@numba.njit(cache=True, inline="always")
+def lattice_cell_index(x0, x1, x2, res):
+    """Flat index i0 + i1 (res - 1) + i2 (res - 1)^2 of the lattice cell holding a unit-cube point."""
+    i0, i1, i2, _, _, _ = lattice_cell(x0, x1, x2, res)
+    return i0 + (res - 1) * (i1 + (res - 1) * i2)
+
+
+@numba.njit(cache=True, inline="always")
+def lattice_value(x0, x1, x2, res, links, values):
+    """The trilinear value at one unit-cube point of a one-channel sparse lattice: values (M,)
+    on the linked vertices, pruned vertices (links < 0) count as 0 (`SparseVoxelGrid.query`)."""
+    i0, i1, i2, f0, f1, f2 = lattice_cell(x0, x1, x2, res)
+    acc = 0.0
+    for a in range(2):
+        wa = f0 if a else 1.0 - f0
+        for b in range(2):
+            wb = f1 if b else 1.0 - f1
+            for d in range(2):
+                r = links[(i0 + a) + (i1 + b) * res + (i2 + d) * res * res]
+                if r >= 0:
+                    acc += wa * wb * (f2 if d else 1.0 - f2) * values[r]
+    return acc
+
+
 @numba.njit(parallel=True, cache=True, fastmath=False)
 def _corners(x, res, links, rows, w):
     """Same arithmetic as `voxels.trilinear_corners`, then the links lookup."""
     n = x.shape[0]
     for i in numba.prange(n):
-        g0 = min(max(x[i, 0], 0.0), 1.0) * (res - 1)
-        g1 = min(max(x[i, 1], 0.0), 1.0) * (res - 1)
-        g2 = min(max(x[i, 2], 0.0), 1.0) * (res - 1)
-        i0 = min(int(g0), res - 2)
-        i1 = min(int(g1), res - 2)
-        i2 = min(int(g2), res - 2)
-        f0, f1, f2 = g0 - i0, g1 - i1, g2 - i2
+        i0, i1, i2, f0, f1, f2 = lattice_cell(x[i, 0], x[i, 1], x[i, 2], res)
         c = 0
         for a in range(2):
             wa = f0 if a else 1.0 - f0

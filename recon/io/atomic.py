@@ -98,12 +98,35 @@ def atomic_dir(path: Path):
 
 
 def save_torch(payload: dict, path: Path) -> None:
-    """torch.save, atomically. Serialised in memory first: torch's own file writer turns a full
-    disk into an opaque "unexpected pos" RuntimeError, a plain write gives the real OSError."""
-    import io
-
+    """torch.save, atomically, streamed to the file (a checkpoint is never held twice in
+    memory: 0.7 GB for a 256^3 plenoxel lattice with its Adam moments). torch's writer turns a
+    failed write (a full disk) into an opaque "unexpected pos" RuntimeError: the OSError our
+    own `write` saw is raised instead."""
     import torch
 
-    buffer = io.BytesIO()
-    torch.save(payload, buffer)
-    atomic_write_bytes(path, buffer.getbuffer())
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        failed: list[OSError] = []
+
+        def write(data) -> int:
+            try:
+                return f.write(data)
+            except OSError as e:
+                failed.append(e)
+                raise
+
+        try:
+            torch.save(payload, _Writer(write))
+        except RuntimeError:
+            if failed:
+                raise failed[0] from None
+            raise
+
+
+class _Writer:
+    """The file-like object torch.save needs: only `write` (and a no-op `flush`)."""
+
+    def __init__(self, write):
+        self.write = write
+
+    def flush(self) -> None:
+        pass

@@ -79,6 +79,51 @@ def keep_seen_components(
     return _keep_faces(mesh, seen[labels])
 
 
+def visible_faces(
+    mesh: trimesh.Trimesh,
+    K: np.ndarray,
+    cam_from_world: np.ndarray,
+    sizes: np.ndarray,
+    tolerance: float,
+) -> np.ndarray:
+    """(F,) bool: the faces some camera sees. A face is seen when its centroid projects inside
+    an image, in front of the camera, no more than `tolerance` (world units, along the optical
+    axis) behind the nearest surface the z-buffer of the whole mesh holds at that pixel. The
+    back sheet of a density shell (marching cubes around a surface of some thickness) and
+    whatever the level set encloses are behind the front sheet from every camera."""
+    from recon.mesh.preview import shade_mesh  # the z-buffer rasterizer
+
+    vertices = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64)
+    centroids = vertices[faces].mean(axis=1)
+    seen = np.zeros(len(faces), bool)
+    for k, m, (w, h) in zip(K, cam_from_world, np.asarray(sizes, np.int64)):
+        k, m = np.asarray(k, np.float64), np.asarray(m, np.float64)
+        _, zbuf = shade_mesh(vertices, faces, k, m, int(w), int(h))
+        x = centroids @ m[:3, :3].T + m[:3, 3]  # x_cam = R x + t, (u, v) = K x_cam / z
+        z = x[:, 2]
+        uv = x @ k.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = np.floor(uv[:, 0] / z), np.floor(uv[:, 1] / z)
+        inside = np.flatnonzero((z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h))
+        ui, vi = u[inside].astype(np.int64), v[inside].astype(np.int64)
+        seen[inside[z[inside] <= zbuf[vi, ui] + tolerance]] = True
+    return seen
+
+
+def keep_visible_faces(
+    mesh: trimesh.Trimesh,
+    K: np.ndarray,
+    cam_from_world: np.ndarray,
+    sizes: np.ndarray,
+    tolerance: float,
+) -> trimesh.Trimesh:
+    """The mesh without the faces no camera sees (`visible_faces`)."""
+    if len(mesh.faces) == 0:
+        return mesh.copy()
+    return _keep_faces(mesh, visible_faces(mesh, K, cam_from_world, sizes, tolerance))
+
+
 def mesh_stats(mesh: trimesh.Trimesh) -> dict:
     """Vertex / face / component counts, watertightness, area (and volume when closed)."""
     n_components = int(component_labels(mesh).max() + 1) if len(mesh.faces) else 0

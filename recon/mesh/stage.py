@@ -1,7 +1,10 @@
 """The `mesh` stage: a trained run -> WS/runs/<run>/mesh/mesh.<fmt> in ORIGINAL scene units.
 
-auto = marching cubes on the density field for volume methods, TSDF fusion of rendered depth
-for 3dgs (or any method, with --method tsdf).
+auto = TSDF fusion of the rendered depth of the training views, for every method: on
+sample_data it beats marching cubes on the density wherever both exist (240 s runs, F-score at
+tau = 1 %: ngp 0.979 against 0.944, plenoxel 0.971 against 0.956; bench/results/mesh_sample.md),
+and on the walnut ring ngp's marching-cubes mesh came out empty. `--method marching-cubes`
+extracts a level set of the density (nerf/ngp/plenoxel), keeping the faces a camera sees.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import torch
 from recon.io.images import write_png
 from recon.mesh.cleanup import (
     keep_seen_components,
+    keep_visible_faces,
     mesh_stats,
     remove_small_components,
     transform_mesh,
@@ -39,8 +43,9 @@ from recon.workspace.runs import load_run
 class MeshConfig:
     method: str = opt(
         "auto",
-        "auto: marching cubes on the zero level set of a signed distance field (sdf), on a "
-        "density field (nerf/ngp/plenoxel), TSDF fusion of rendered depth otherwise (3dgs)",
+        "auto: marching cubes on the zero level set of a signed distance field (sdf), TSDF "
+        "fusion of rendered depth for every other method (the geometry benchmark's best); "
+        "marching-cubes: a level set of the density (nerf/ngp/plenoxel)",
         choices=("auto", "marching-cubes", "tsdf"),
     )
     resolution: int = opt(
@@ -55,6 +60,14 @@ class MeshConfig:
     )
     truncation: float = opt(0.02, "TSDF truncation as a fraction of the box's longest side")
     min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
+    visible_only: bool = opt(
+        True,
+        "density marching cubes: keep only faces a training camera sees (within visible_tolerance "
+        "of the front surface): drops the back sheet of a surface with thickness",
+    )
+    visible_tolerance: float = opt(
+        2.0, "how far behind the front surface a face still counts as seen (voxels)"
+    )
     format: str = opt("ply", "mesh file format", choices=("ply", "obj", "glb"))
     previews: int = opt(3, "shaded pictures of the mesh from this many training cameras")
     preview_max_side: int = opt(320, "longer side of the preview pictures (px)")
@@ -102,10 +115,12 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     level = trained_resolution(run_doc, scene).downscale  # views are rendered at the training size
     aabb = scene.info.aabb.to(device)
     method = cfg.method
+    has_sdf = getattr(model, "has_sdf", False)
     if method == "auto":
-        method = "marching-cubes" if model.has_density else "tsdf"
+        method = "marching-cubes" if has_sdf else "tsdf"
     started = time.time()
-    if method == "marching-cubes" and getattr(model, "has_sdf", False):
+    side = float((aabb[1] - aabb[0]).max())  # the box's longest side
+    if method == "marching-cubes" and has_sdf:
         # the surface is the zero level set of the distance, inside where it is negative
         mesh = extract_density_mesh(
             lambda p: -model.sdf(p), aabb, cfg.resolution, 0.0, color_fn=model.color, device=device
@@ -116,7 +131,6 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
             raise WorkspaceError(
                 f"run '{run}' ({run_doc['method']}) has no density field: use --method tsdf"
             )
-        side = float((aabb[1] - aabb[0]).max())
         threshold = cfg.threshold or soft_field_threshold(
             choose_density_threshold(side / cfg.resolution),
             rendered_surface_density(model, scene, cfg, device, level),
@@ -147,16 +161,24 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     if len(mesh.faces) == 0:
         raise WorkspaceError(f"the {method} mesh of run '{run}' is empty: is the run trained?")
     raw_faces = len(mesh.faces)
-    train_cams = scene.cameras(scene.split("train"), "cpu", level)
+    cams = scene.cameras(scene.split("train"), "cpu", level)
     mesh = keep_seen_components(
-        mesh,
-        train_cams.K.numpy(),
-        train_cams.cam_from_world.numpy(),
-        torch.stack([train_cams.width, train_cams.height], 1).numpy(),
-    )
+        mesh, cams.K.numpy(), cams.cam_from_world.numpy(),
+        torch.stack([cams.width, cams.height], 1).numpy(),
+    )  # fmt: skip
+    if cfg.visible_only and method == "marching-cubes" and not has_sdf:
+        # a density level set doubles the surface (a shell around it); a distance's does not
+        mesh = keep_visible_faces(
+            mesh,
+            cams.K.numpy(),
+            cams.cam_from_world.numpy(),
+            torch.stack([cams.width, cams.height], 1).numpy(),
+            cfg.visible_tolerance * side / cfg.resolution,
+        )
+        detail["visible_faces"] = len(mesh.faces)
     mesh = remove_small_components(mesh, cfg.min_component)
     normals = None
-    if getattr(model, "has_sdf", False) and method == "marching-cubes" and len(mesh.vertices):
+    if has_sdf and method == "marching-cubes" and len(mesh.vertices):
         normals = field_normals(model, mesh.vertices, device)
     previews = write_previews(ws, run, mesh, scene, cfg, normals)
     sim = (

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from recon.cameras import Cameras
-from recon.cameras.rays import pixel_centers, rays_from_pixels
+from recon.cameras.rays import rays_from_pixels
 
 
 @dataclass
@@ -51,7 +51,6 @@ class TrainData:
 
     images: Tensor
     cameras: Cameras
-    _rays: dict = field(default_factory=dict, repr=False)
     _levels: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -76,26 +75,34 @@ class TrainData:
             )
         return self._levels[factor]
 
+    @property
+    def num_pixels(self) -> int:
+        return self.images.shape[0] * self.images.shape[1] * self.images.shape[2]
+
+    def rays_at(self, index: Tensor) -> dict[str, Tensor]:
+        """The rays of training pixels given by flat indices (N,) into (C, H, W), computed on
+        demand (a stored table of every pixel would hold ~36 bytes a pixel: 144 MB for 100
+        views at 200 x 200): origins (N, 3), directions (N, 3) unit, z_per_t (N,), rgb (N, 3),
+        camera (N,) int64. Example: with C = 2 views of 2 x 3 pixels, index 7 is camera 1,
+        row 0, column 1, through the pixel centre (1.5, 0.5)."""
+        H, W = self.images.shape[1:3]
+        index = index.to(self.images.device)
+        camera, pixel = index // (H * W), index % (H * W)
+        uv = torch.stack([pixel % W, pixel // W], dim=-1).float() + 0.5
+        o, d, z = rays_from_pixels(
+            uv, self.cameras.K[camera].float(), self.cameras.world_from_cam[camera].float()
+        )
+        return {
+            "origins": o,
+            "directions": d,
+            "z_per_t": z,
+            "rgb": self.images.reshape(-1, 3)[index],
+            "camera": camera,
+        }
+
     def rays(self) -> dict[str, Tensor]:
-        """Every training pixel as a packed ray table (computed once):
-        origins (N, 3), directions (N, 3) unit, z_per_t (N,), rgb (N, 3), camera (N,) int64."""
-        if not self._rays:
-            C, H, W, _ = self.images.shape
-            uv = pixel_centers(W, H, device=self.images.device)
-            o, d, z = rays_from_pixels(
-                uv[None],
-                self.cameras.K[:, None, None].float(),
-                self.cameras.world_from_cam[:, None, None].float(),
-            )
-            cam = torch.arange(C, device=self.images.device)[:, None, None].expand(C, H, W)
-            self._rays = {
-                "origins": o.reshape(-1, 3).contiguous(),
-                "directions": d.reshape(-1, 3).contiguous(),
-                "z_per_t": z.expand(C, H, W).reshape(-1).contiguous(),
-                "rgb": self.images.reshape(-1, 3),
-                "camera": cam.reshape(-1),
-            }
-        return self._rays
+        """Every training pixel's ray (`rays_at` of all of them), in (C, H, W) order."""
+        return self.rays_at(torch.arange(self.num_pixels))
 
 
 class Model(nn.Module):

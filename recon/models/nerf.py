@@ -340,7 +340,7 @@ class NeRFModel(Model):
         cfg = self.cfg
         self._update_occupancy(step)
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
-        batch = sample_rays(data.rays(), cfg.rays_per_batch, self.generator)
+        batch = sample_rays(data, cfg.rays_per_batch, self.generator)
         coarse, fine = self._render_rays(batch["origins"], batch["directions"], jitter=True)
         mse_c = torch.mean((coarse["rgb"] - batch["rgb"]) ** 2)
         mse_f = torch.mean((fine["rgb"] - batch["rgb"]) ** 2)

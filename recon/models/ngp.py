@@ -99,7 +99,8 @@ class NGPConfig:
     lr_decay_steps: int = opt(5000, "steps of the learning-rate decay")
     weight_decay: float = opt(1e-6, "L2 on the MLP weights (not the grid)")
     chunk: int = opt(
-        1024, "rays per chunk when rendering images (1024 keeps the MLP activations in cache)"
+        4096,
+        "rays per chunk when rendering images (lego-200, 200 px: 1024 rays 358 ms a frame, 4096 273 ms, 8192 277 ms)",
     )
     default_steps: int = opt(2000, "steps when no stopping rule is given")
     seed: int = opt(0, "seeds ray sampling, marching jitter and occupancy updates")
@@ -258,13 +259,14 @@ class NGPModel(Model):
         ids = torch.arange(origins.shape[0], device=origins.device)
         return self._march_fn(origins, directions, jitter)(ids, self.cfg.max_samples_per_ray)
 
-    def _kept_samples(self, origins: Tensor, directions: Tensor, jitter: bool):
+    def _kept_samples(self, origins: Tensor, directions: Tensor, jitter: bool, density=None):
         """The occupied samples early termination keeps, the density evaluated without
         gradients and only as far along each ray as needed (`march_terminated`).
-        -> (ray_indices, t_starts, t_ends, unit-cube midpoints, densities evaluated)."""
+        -> (ray_indices, t_starts, t_ends, unit-cube midpoints, densities evaluated); with
+        density = `field.geometry` also the kept samples' sigmas and features before the count."""
         return march_terminated(
             self._march_fn(origins, directions, jitter),
-            self.field.sigma,
+            density or self.field.sigma,
             origins.shape[0],
             self.cfg.eps_transmittance,
             TERMINATION_FIRST_SAMPLES,
@@ -311,9 +313,11 @@ class NGPModel(Model):
 
     @torch.no_grad()
     def _render_rays_eval(self, origins: Tensor, directions: Tensor):
-        """The kept samples (`_kept_samples`), then the field and colour on them alone."""
-        ri, t0, t1, x, _ = self._kept_samples(origins, directions, jitter=False)
-        sigma, geo = self.field.geometry(x)
+        """The kept samples of `march_terminated` with the field's geometry (density and
+        features) evaluated once, in its rounds; then the colour on the kept samples alone."""
+        ri, t0, t1, _, sigma, geo, _ = self._kept_samples(
+            origins, directions, jitter=False, density=self.field.geometry
+        )
         rgb = self.field.color(geo, self.field.encode_directions(directions)[ri])
         return volume_render(
             sigma, rgb, t0, t1, ri, origins.shape[0], self.background_colour(directions)
@@ -333,7 +337,7 @@ class NGPModel(Model):
             )
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         n_rays = self.n_rays
-        batch = sample_rays(data.rays(), n_rays, self.generator)
+        batch = sample_rays(data, n_rays, self.generator)
         out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"])
         n_samples = ri.shape[0]
         mse = torch.mean((out.rgb - batch["rgb"]) ** 2)

@@ -14,19 +14,29 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from recon.cameras import Cameras
-from recon.fields.sh import C0, eval_sh, num_sh_bases
+from recon.cameras import Cameras, camera_rays
+from recon.fields.sh import C0, eval_sh, num_sh_bases, sh_basis
 from recon.fields.voxel_kernels import corners
 from recon.fields.voxels import SparseVoxelGrid
+from recon.io.packed import (
+    bits_indices,
+    deflate,
+    dequantize_int8,
+    inflate,
+    mask_bits,
+    quantize_int8,
+)
 from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
-from recon.models.raymarch import render_image
+from recon.models.plenoxel_march import Lattice, march_lattice_terminated, render_lattice
+from recon.models.raymarch import render_image, sample_rays
 from recon.models.schedules import exp_decay_lr
 from recon.options import opt
 from recon.volrend import (
     OccupancyGrid,
     ray_aabb_intersect,
     scene_to_unit_cube,
+    surface_depth,
     terminated_mask,
     volume_render,
 )
@@ -64,6 +74,10 @@ class PlenoxelConfig:
         0.001,
         "when training stops, keep only vertices within one voxel of a vertex whose blending weight on some training ray reaches this (0 = keep all)",
     )
+    upsample_prune_unseen: bool = opt(
+        True,
+        "right after each upsampling, prune what no training ray sees (as finish_weight does at the end): the finer lattice's optimizer state and steps hold only that",
+    )
     finish_ray_stride: int = opt(
         2, "the final pruning traces every N-th pixel of each row and column of the views"
     )
@@ -87,6 +101,7 @@ class PlenoxelModel(Model):
         self.occupancy = OccupancyGrid(cfg.occupancy_res)
         self.generator = torch.Generator().manual_seed(0)
         self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
+        self._live: Tensor | None = None  # `live_cells`, computed on demand
         self._make_optimizer()
 
     # ---- field ---------------------------------------------------------------------------
@@ -133,28 +148,75 @@ class PlenoxelModel(Model):
         side = float((self.aabb[1] - self.aabb[0]).max())
         return self.cfg.step_voxels * side / self.res
 
-    def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:
+    def _ray_range(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, float]:
+        """(t_min, t_max, cone angle) of each ray (R,): the scene box (bounded) or [near, far]."""
         R = origins.shape[0]
         if self.scene.unbounded:
             t_min = torch.full((R,), self.scene.near, device=origins.device)
             t_max = torch.full((R,), self.scene.far, device=origins.device)
-            cone = self.cfg.cone_angle or 1.0 / 256
-        else:
-            t_min, t_max, _ = ray_aabb_intersect(origins, dirs, self.aabb)
-            t_min = t_min.clamp_min(self.scene.near)
-            cone = self.cfg.cone_angle
-        u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
+            return t_min, t_max, self.cfg.cone_angle or 1.0 / 256
+        t_min, t_max, _ = ray_aabb_intersect(origins, dirs, self.aabb)
+        return t_min.clamp_min(self.scene.near), t_max, self.cfg.cone_angle
+
+    @torch.no_grad()
+    def kept_samples(self, origins: Tensor, dirs: Tensor, u: Tensor | None):
+        """The samples a render keeps: occupied, sigma > 0 and T >= eps (early termination),
+        packed (ray_indices, t_starts, t_ends). One numba pass on the CPU
+        (`plenoxel_march.march_lattice_terminated`), else `_march_then_terminate`."""
+        t_min, t_max, cone = self._ray_range(origins, dirs)
+        if origins.device.type != "cpu":
+            return self._march_then_terminate(origins, dirs, t_min, t_max, cone, u)
+        live = None if u is not None else self.live_cells()  # jittered: a training step
+        return march_lattice_terminated(origins, dirs, t_min, t_max, u, self._lattice(cone, live))
+
+    def _lattice(self, cone: float, live: Tensor | None) -> Lattice:
+        """The model's grids as the one-pass kernels read them (`plenoxel_march.Lattice`)."""
+        return Lattice(
+            self.occupancy.occupied, self.occupancy.resolution, live, self.aabb,
+            self.scene.unbounded, self._step_t(), cone, self.grid.links,
+            self.grid.data["density"][:, 0], self.res, self._density_scale(),
+            self.cfg.eps_transmittance,
+        )  # fmt: skip
+
+    @torch.no_grad()
+    def live_cells(self) -> Tensor:
+        """((res - 1)^3,) bool: the lattice cells with a vertex of positive density, the only
+        ones where sigma > 0 (cell (i, j, k) at i + (res - 1) (j + (res - 1) k)). Kept until
+        the density changes: every method that changes it calls `_density_changed`."""
+        if self._live is None:
+            r, density = self.res, self.grid.data["density"].detach()[:, 0]
+            positive = torch.zeros(r**3, dtype=torch.bool, device=density.device)
+            positive[self.grid.coords[density > 0]] = True
+            v = positive.view(r, r, r)  # (k, j, i)
+            live = torch.zeros((r - 1,) * 3, dtype=torch.bool, device=density.device)
+            for dk in (0, 1):
+                for dj in (0, 1):
+                    for di in (0, 1):
+                        live |= v[dk : r - 1 + dk, dj : r - 1 + dj, di : r - 1 + di]
+            self._live = live.reshape(-1)
+        return self._live
+
+    def _density_changed(self) -> None:
+        self._live = None
+
+    @torch.no_grad()
+    def _march_then_terminate(self, origins, dirs, t_min, t_max, cone, u):
+        """`kept_samples` in two stages: march every occupied sample, evaluate the density of
+        all of them, then drop those with sigma = 0 or behind T < eps (`terminated_mask`)."""
         ray_idx, t0, t1 = self.occupancy.march(
             origins, dirs, t_min, t_max, self.aabb, self.scene.unbounded, self._step_t(), cone, u
         )
         if ray_idx.numel():
-            with torch.no_grad():  # cheap density pre-pass for early termination
-                mids = 0.5 * (t0 + t1)
-                sig = self._sigma_unit(
-                    self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx])
-                )
-                keep = terminated_mask(sig, t0, t1, ray_idx, self.cfg.eps_transmittance) & (sig > 0)
+            mids = 0.5 * (t0 + t1)
+            sig = self._sigma_unit(self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx]))
+            keep = terminated_mask(sig, t0, t1, ray_idx, self.cfg.eps_transmittance) & (sig > 0)
             ray_idx, t0, t1 = ray_idx[keep], t0[keep], t1[keep]
+        return ray_idx, t0, t1
+
+    def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:
+        R = origins.shape[0]
+        u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
+        ray_idx, t0, t1 = self.kept_samples(origins, dirs, u)
         mids = 0.5 * (t0 + t1)
         x = origins[ray_idx] + mids[:, None] * dirs[ray_idx]
         rgb, sigma = self._rgb_sigma(x, dirs[ray_idx])
@@ -186,21 +248,29 @@ class PlenoxelModel(Model):
 
     @torch.no_grad()
     def finish(self, data: TrainData) -> dict[str, float]:
+        """When training stops: `prune_unseen` (finish_weight 0: nothing)."""
+        if self.cfg.finish_weight <= 0:
+            return {}
+        before = self.grid.num_rows
+        self.prune_unseen(data)
+        return {"finish_rows_before": float(before), "finish_rows_after": float(self.grid.num_rows)}
+
+    @torch.no_grad()
+    def prune_unseen(self, data: TrainData) -> None:
         """Prune by visibility (Fridovich-Keil et al. 2022 prune by the largest weight a voxel
         takes on the training rays): keep the vertices within one voxel (the trilinear
         footprint) of one whose `vertex_weights` over every finish_ray_stride-th pixel of the
         training views reaches finish_weight. Vertices no ray sees are the inside of solid
         objects and the space behind what the cameras see."""
-        if self.cfg.finish_weight <= 0:
-            return {}
         s = max(1, self.cfg.finish_ray_stride)
         C, H, W, _ = data.images.shape
-        rays = data.rays()
-        pick = lambda t: t.reshape(C, H, W, 3)[:, ::s, ::s].reshape(-1, 3)
-        best = self.vertex_weights(pick(rays["origins"]), pick(rays["directions"]))
-        before = self.grid.num_rows
+        pixels = torch.arange(data.num_pixels).reshape(C, H, W)[:, ::s, ::s].reshape(-1)
+        best = None
+        for part in pixels.split(1 << 18):
+            rays = data.rays_at(part)
+            w = self.vertex_weights(rays["origins"], rays["directions"])
+            best = w if best is None else torch.maximum(best, w)
         self._prune_neighbourhood((best >= self.cfg.finish_weight).float(), 0.0)
-        return {"finish_rows_before": float(before), "finish_rows_after": float(self.grid.num_rows)}
 
     # ---- training ------------------------------------------------------------------------
     def _make_optimizer(self) -> None:
@@ -216,21 +286,32 @@ class PlenoxelModel(Model):
         )
         self._base_lrs = [self.cfg.lr_density, self.cfg.lr_sh]
 
-    def _tv_loss(self) -> Tensor:
+    @torch.no_grad()
+    def _tv_step(self) -> float:
+        """The total-variation term w mean_(pairs, channels) (p_a - p_b)^2 over the +x/+y/+z
+        neighbour pairs of a random tv_fraction of the rows (Fridovich-Keil et al. 2022, eq. 4):
+        its gradient +-2 w (p_a - p_b) / (P C) is added to each data row's .grad in place (no
+        dense (M, C) gradient per term, as autograd through index_select would allocate).
+        Returns the term's value."""
         M = self.grid.num_rows
         k = max(1, int(self.cfg.tv_fraction * M))
         rows = torch.randint(0, M, (k,), generator=self.generator).to(self.grid.links.device)
         a, b = self.grid.neighbour_pairs(rows)
         if a.numel() == 0:
-            return torch.zeros((), device=self.aabb.device)
+            return 0.0
         loss = 0.0
         for name, w in (("density", self.cfg.tv_density), ("sh", self.cfg.tv_sh)):
             p = self.grid.data[name]
-            diff = p.index_select(0, a) - p.index_select(0, b)  # backward index_add: deterministic
-            loss = loss + w * diff.pow(2).mean()
+            diff = p.index_select(0, a) - p.index_select(0, b)
+            loss += w * float(diff.pow(2).mean())
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+            g = diff * (2 * w / diff.numel())
+            p.grad.index_add_(0, a, g)  # index_add: deterministic on multi-threaded CPUs
+            p.grad.index_add_(0, b, -g)
         return loss
 
-    def _maybe_upsample(self, step: int) -> None:
+    def _maybe_upsample(self, step: int, data: TrainData) -> None:
         lvl = int(self.level)
         if (
             lvl + 1 < len(self.cfg.resolutions)
@@ -245,6 +326,9 @@ class PlenoxelModel(Model):
             self.grid.upsample(new_res, lambda occ: occ)
             self.grid.data["density"].data /= scale
             self.level.fill_(lvl + 1)
+            self._density_changed()
+            if self.cfg.upsample_prune_unseen and self.cfg.finish_weight > 0:
+                self.prune_unseen(data)  # before the finer lattice's optimizer state exists
             self._make_optimizer()
 
     @torch.no_grad()
@@ -263,27 +347,27 @@ class PlenoxelModel(Model):
         keep = near.reshape(-1)[self.grid.coords] > threshold
         if int(keep.sum()) >= 8:
             self.grid.prune(keep)
+            self._density_changed()
             self._make_optimizer()
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
-        self._maybe_upsample(step)
+        self._maybe_upsample(step, data)
         if step % self.cfg.occupancy_every == 0:
             cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
             self.occupancy.update(
                 self._sigma_unit, cell, warmup=step < 32, generator=self.generator
             )
-        rays = data.rays()
-        n = rays["rgb"].shape[0]
         n_rays = self.n_rays
-        idx = torch.randint(0, n, (n_rays,), generator=self.generator).to(rays["rgb"].device)
-        out = self.render_rays(rays["origins"][idx], rays["directions"][idx], jitter=True)
-        mse = F.mse_loss(out["rgb"], rays["rgb"][idx])
-        loss = mse + self._tv_loss()
+        batch = sample_rays(data, n_rays, self.generator)
+        out = self.render_rays(batch["origins"], batch["directions"], jitter=True)
+        mse = F.mse_loss(out["rgb"], batch["rgb"])
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        mse.backward()
+        loss = mse.detach() + self._tv_step()
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
             g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
         self.optimizer.step()
+        self._density_changed()
         if (
             self.cfg.samples_per_batch > 0
         ):  # Instant-NGP: a fixed sample budget per step, not fixed rays
@@ -301,36 +385,78 @@ class PlenoxelModel(Model):
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
-        def rays(origins: Tensor, directions: Tensor):
-            out = self.render_rays(origins, directions, jitter=False)
-            return out["rgb"], out["depth"], out["acc"]
+        """Camera 0's image: on the CPU one numba pass per ray (`plenoxel_march.render_lattice`,
+        no sample ever stored), elsewhere `render_rays` chunk by chunk; the same pixels."""
+        if self.aabb.device.type != "cpu":
+            return render_image(self._render_chunk, camera, self.cfg.chunk)
+        origins, dirs, z_per_t = camera_rays(camera, 0)
+        H, W = z_per_t.shape
+        o, d = origins.reshape(-1, 3).float(), dirs.reshape(-1, 3).float()
+        rgb, t, acc = self._render_fused(o, d)
+        depth = surface_depth(t, acc) * z_per_t.reshape(-1).to(t)
+        return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
 
-        return render_image(rays, camera, self.cfg.chunk)
+    def _render_chunk(self, origins: Tensor, directions: Tensor):
+        out = self.render_rays(origins, directions, jitter=False)
+        return out["rgb"], out["depth"], out["acc"]
+
+    def _render_fused(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(rgb (R, 3), expected t (R,), acc (R,)) of CPU rays, as `render_rays` gives them."""
+        t_min, t_max, cone = self._ray_range(origins, dirs)
+        basis = sh_basis(self.cfg.sh_degree, dirs)
+        lattice = self._lattice(cone, self.live_cells())
+        sh = self.grid.data["sh"]
+        return render_lattice(origins, dirs, t_min, t_max, basis, sh, self.background, lattice)
 
     # ---- state ---------------------------------------------------------------------------
     def file_state(self) -> dict:
-        """model.pt without the dense res^3 `links` table (rebuilt from `coords` on load: 134 MB
-        at 256^3), `coords` as int32 and the SH coefficients in float16 (relative error
-        <= 2^-11; renders within ~1e-3, `test_file_state_round_trip`)."""
+        """model.pt, small: the lattice's vertices as a deflated bitmask of res^3 bits instead of
+        the dense `links` table and `coords` (rows in ascending vertex order), density in
+        float16 and the SH coefficients in int8 with one scale per coefficient (`io.packed`;
+        error <= half a step: renders within ~5e-3, lego-200 PSNR -0.001 dB), both deflated."""
         state = dict(self.state_dict())
-        del state["grid.links"]
-        state["grid.res"] = torch.tensor(self.res)
-        state["grid.coords"] = state["grid.coords"].to(torch.int32)
-        state["grid.data.sh"] = state["grid.data.sh"].half()
+        for key in ("grid.links", "grid.coords", "grid.data.density", "grid.data.sh"):
+            del state[key]
+        coords, order = torch.sort(self.grid.coords)
+        q, scale = quantize_int8(self.grid.data["sh"].detach()[order])
+        state.update(
+            {
+                "grid.res": torch.tensor(self.res),
+                "grid.vertex_bits": deflate(mask_bits(coords, self.res**3)),
+                "grid.density_f16": deflate(self.grid.data["density"].detach()[order].half()),
+                "grid.sh_int8": deflate(q),
+                "grid.sh_scale": scale,
+            }
+        )
         return state
 
-    def load_state_dict(self, state: dict, strict: bool = True):
-        """Grids change size during training: resize to the saved shapes first. Reads both
-        `state_dict()` and the smaller `file_state()`."""
-        state = dict(state)
+    def _unpack_file_state(self, state: dict) -> tuple[Tensor, dict[str, Tensor], int]:
+        """(coords, {name: values}, res) of the lattice in any saved form: `state_dict()`
+        (checkpoints), `file_state()`, or the earlier file form (int32 coords, float16 SH)."""
+        if "grid.vertex_bits" in state:
+            res = int(state.pop("grid.res"))
+            bits = inflate(state.pop("grid.vertex_bits"), torch.uint8, (-1,))
+            coords = bits_indices(bits, res**3)
+            M, K = len(coords), self.grid.data["sh"].shape[1]
+            density = inflate(state.pop("grid.density_f16"), torch.float16, (M, 1)).float()
+            q = inflate(state.pop("grid.sh_int8"), torch.int8, (M, K))
+            sh = dequantize_int8(q, state.pop("grid.sh_scale"))
+            return coords, {"density": density, "sh": sh}, res
         if "grid.res" in state:
             res = int(state.pop("grid.res"))
         else:
             res = round(state["grid.links"].numel() ** (1 / 3))
-        coords = state["grid.coords"].long()
-        values = {n: state[f"grid.data.{n}"].float() for n in self.grid.data}
+        values = {n: state.pop(f"grid.data.{n}").float() for n in self.grid.data}
+        return state.pop("grid.coords").long(), values, res
+
+    def load_state_dict(self, state: dict, strict: bool = True):
+        """Grids change size during training: resize to the saved shapes first. Reads
+        `state_dict()` and `file_state()` (see `_unpack_file_state`)."""
+        state = dict(state)
+        coords, values, res = self._unpack_file_state(state)
         self.grid.set_rows(coords, values, res)
-        state.update({"grid.coords": coords, "grid.links": self.grid.links})
+        self._density_changed()
+        state.update({"grid.coords": self.grid.coords, "grid.links": self.grid.links})
         state.update({f"grid.data.{n}": v for n, v in values.items()})
         self._make_optimizer()
         return super().load_state_dict(state, strict)

@@ -10,18 +10,16 @@ import torch
 from torch import Tensor, nn
 
 from recon.cameras import Cameras, camera_rays
-from recon.models.base import SceneInfo
+from recon.models.base import SceneInfo, TrainData
 from recon.volrend import normalize_to_box, ray_aabb_intersect, surface_depth
 
 # render_rays(origins (R, 3), directions (R, 3)) -> (rgb (R, 3), expected t (R,), acc (R,))
 RenderRaysFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
 
 
-def sample_rays(rays: dict[str, Tensor], n: int, generator: torch.Generator) -> dict[str, Tensor]:
-    """n rays drawn uniformly with replacement from the packed training-ray table."""
-    total = rays["rgb"].shape[0]
-    idx = torch.randint(0, total, (n,), generator=generator).to(rays["rgb"].device)
-    return {k: v[idx] for k, v in rays.items()}
+def sample_rays(data: TrainData, n: int, generator: torch.Generator) -> dict[str, Tensor]:
+    """n training rays drawn uniformly with replacement from all pixels (`TrainData.rays_at`)."""
+    return data.rays_at(torch.randint(0, data.num_pixels, (n,), generator=generator))
 
 
 @torch.no_grad()

@@ -264,7 +264,7 @@ class SDFModel(Model):
         set_lr(self.optimizer, lr, "grid")
         set_lr(self.optimizer, lr, "mlp")
         n_rays = self.n_rays
-        batch = sample_rays(data.rays(), n_rays, self.generator)
+        batch = sample_rays(data, n_rays, self.generator)
         out, grad = self._render_rays(batch["origins"], batch["directions"], training=True)
         mse = torch.mean((out.rgb - batch["rgb"]) ** 2)
         box = torch.rand(cfg.eikonal_points, 3, generator=self.generator) * 2 - 1

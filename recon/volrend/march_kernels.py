@@ -18,7 +18,7 @@ from torch import Tensor
 
 
 @numba.njit(cache=True, inline="always")
-def _warp(t, step, cone, t_far):
+def warp(t, step, cone, t_far):
     if cone <= 0.0:
         return t / step
     t_sw = step / cone
@@ -30,7 +30,7 @@ def _warp(t, step, cone, t_far):
 
 
 @numba.njit(cache=True, inline="always")
-def _unwarp(s, step, cone, t_far):
+def unwarp(s, step, cone, t_far):
     if cone <= 0.0:
         return s * step
     t_sw = step / cone
@@ -46,8 +46,17 @@ def _unwarp(s, step, cone, t_far):
 
 
 @numba.njit(cache=True, inline="always")
-def _occupied(o, d, t, lo, hi, unbounded, occ, res):
-    """Cell test of the point o + t d, mapped to the unit cube as scene_to_unit_cube does."""
+def march_interval(k, t_min, t_max, s_min, u, step, cone, t_far):
+    """Interval k of a ray's march (`occupancy.march_intervals`): from t_min (k = 0) or the
+    unwarped s_min + k - u to the unwarped s_min + k + 1 - u, clipped at t_max."""
+    start = t_min if k == 0 else unwarp(s_min + k - u, step, cone, t_far)
+    return start, min(unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
+
+
+@numba.njit(cache=True, inline="always")
+def unit_point(o, d, t, lo, hi, unbounded):
+    """The point o + t d mapped to the unit cube as `scene_to_unit_cube` does -> (x0, x1, x2);
+    x0 = -1 when it falls outside the cube."""
     y0 = 2.0 * (o[0] + t * d[0] - lo[0]) / (hi[0] - lo[0]) - 1.0
     y1 = 2.0 * (o[1] + t * d[1] - lo[1]) / (hi[1] - lo[1]) - 1.0
     y2 = 2.0 * (o[2] + t * d[2] - lo[2]) / (hi[2] - lo[2]) - 1.0
@@ -60,6 +69,14 @@ def _occupied(o, d, t, lo, hi, unbounded, occ, res):
     else:
         x0, x1, x2 = 0.5 * y0 + 0.5, 0.5 * y1 + 0.5, 0.5 * y2 + 0.5
     if x0 < 0.0 or x0 > 1.0 or x1 < 0.0 or x1 > 1.0 or x2 < 0.0 or x2 > 1.0:
+        return -1.0, x1, x2
+    return x0, x1, x2
+
+
+@numba.njit(cache=True, inline="always")
+def cell_occupied(x0, x1, x2, occ, res):
+    """Is the unit-cube point (x0 >= 0: inside) in an occupied cell of the res^3 bitfield?"""
+    if x0 < 0.0:
         return False
     i = min(max(int(x0 * res), 0), res - 1)
     j = min(max(int(x1 * res), 0), res - 1)
@@ -92,16 +109,16 @@ def _march_ray(
     first ones, front to back; cap <= 0: no limit); returns how many."""
     if not t_max > t_min:
         return 0
-    s_min, s_max = _warp(t_min, step, cone, t_far), _warp(t_max, step, cone, t_far)
+    s_min, s_max = warp(t_min, step, cone, t_far), warp(t_max, step, cone, t_far)
     count = int(math.ceil(max(s_max - s_min + u, 0.0)))  # noqa: RUF046 (numba typing)
     count = max(count, 1)
     n = 0
     for k in range(count):
-        start = t_min if k == 0 else _unwarp(s_min + k - u, step, cone, t_far)
-        end = min(_unwarp(s_min + k + 1.0 - u, step, cone, t_far), t_max)
+        start, end = march_interval(k, t_min, t_max, s_min, u, step, cone, t_far)
         if not end > start:
             continue
-        if _occupied(o, d, 0.5 * (start + end), lo, hi, unbounded, occ, res):
+        x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded)
+        if cell_occupied(x0, x1, x2, occ, res):
             if write:
                 out_s[n] = start
                 out_e[n] = end

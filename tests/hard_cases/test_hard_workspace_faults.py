@@ -116,19 +116,37 @@ def test_disk_full_during_sfm_rerun_keeps_the_old_stage(sphere_ws):
     assert snapshot(sphere_ws) == before and no_temporaries(sphere_ws)
 
 
-def _half_then_enospc(self, data):
-    with open(self, "wb") as f:
-        f.write(bytes(data)[: len(data) // 2])
-    raise OSError(errno.ENOSPC, "No space left on device")
+class _FillingFile:
+    """A file whose writes land until `room` bytes are written, then fail with ENOSPC."""
+
+    def __init__(self, f, room):
+        self.f, self.room = f, room
+
+    def write(self, data):
+        data = bytes(data)
+        if len(data) > self.room:
+            self.f.write(data[: self.room])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(data)
+        return self.f.write(data)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
 
 
 def test_enospc_midway_through_a_checkpoint_leaves_no_partial_file(tmp_path, monkeypatch):
-    """A mocked write that lands half the bytes then fails with ENOSPC."""
+    """A checkpoint's file fills the disk after 1,000 bytes (torch.save streams into it)."""
+    import recon.io.atomic
+
     ck = tmp_path / "checkpoints"
     save_checkpoint(ck, 0, {"x": torch.zeros(4)}, keep=2)
     before = sorted(p.name for p in ck.iterdir())
     index = (ck / "index.json").read_text()
-    monkeypatch.setattr(Path, "write_bytes", _half_then_enospc)
+    fill = lambda path, mode: _FillingFile(open(path, mode), 1000)  # noqa: SIM115 (closed by __exit__)
+    monkeypatch.setattr(recon.io.atomic, "open", fill, raising=False)
     with pytest.raises(WriteError, match=r"could not write .*step_00000007\.pt: No space left"):
         save_checkpoint(ck, 7, {"x": torch.ones(1000)}, keep=2)
     assert sorted(p.name for p in ck.iterdir()) == before
