@@ -61,7 +61,9 @@ class SDFConfig:
     color_width: int = opt(64, "hidden width of the colour MLP")
     color_hidden: int = opt(2, "hidden layers of the colour MLP")
     sh_degree: int = opt(3, "SH degree of the view-direction encoding")
-    init_radius: float = opt(0.5, "radius of the initial sphere, in box half-sizes")
+    init_radius: float = opt(
+        0.5, "radius of the initial sphere, in half-sizes of the box's SHORTEST side"
+    )
     beta_init: float = opt(0.1, "initial VolSDF scale beta, in box half-sizes")
     beta_min_steps: float = opt(
         0.25, "beta never falls below this many marching steps (a thinner shell than the samples)"
@@ -115,7 +117,12 @@ class SDFModel(Model):
         self.register_buffer("aabb", scene.aabb.clone().float())
         self.register_buffer("background", scene.background.clone().float())
         self.register_buffer("centre", self.aabb.mean(0))
-        self.half_size = float((self.aabb[1] - self.aabb[0]).max()) / 2  # R: world per box unit
+        extent = self.aabb[1] - self.aabb[0]
+        self.half_size = float(extent.max()) / 2  # R: world per box unit
+        # Every ray must enter the box outside the initial surface: a sphere poking out of a flat
+        # box's short side makes the box's face itself the first surface each ray meets, and the
+        # colours are painted there (a box-shaped level set that never leaves it).
+        radius = cfg.init_radius * float(extent.min()) / 2 / self.half_size
         self.field = SDFField(
             cfg.n_levels,
             cfg.n_features,
@@ -125,7 +132,7 @@ class SDFModel(Model):
             cfg.width,
             cfg.n_hidden,
             cfg.geo_features,
-            cfg.init_radius,
+            radius,
         )
         self.color_mlp = mlp(
             cfg.geo_features + 3 + num_sh_bases(cfg.sh_degree), cfg.color_width, cfg.color_hidden, 3
