@@ -62,8 +62,9 @@ class MeshConfig:
     min_component: float = opt(0.02, "components with fewer faces than this fraction are removed")
     visible_only: bool = opt(
         True,
-        "density marching cubes: keep only faces a training camera sees (within visible_tolerance "
-        "of the front surface): drops the back sheet of a surface with thickness",
+        "marching cubes: keep only faces a training camera sees (within visible_tolerance of the "
+        "front surface): drops the back sheet of a density shell and the sides of a level set "
+        "no photo shows (sample_data sdf, 10 min: F 0.855 -> 0.905); off: the closed level set",
     )
     visible_tolerance: float = opt(
         2.0, "how far behind the front surface a face still counts as seen (voxels)"
@@ -166,8 +167,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
         mesh, cams.K.numpy(), cams.cam_from_world.numpy(),
         torch.stack([cams.width, cams.height], 1).numpy(),
     )  # fmt: skip
-    if cfg.visible_only and method == "marching-cubes" and not has_sdf:
-        # a density level set doubles the surface (a shell around it); a distance's does not
+    if cfg.visible_only and method == "marching-cubes":
         mesh = keep_visible_faces(
             mesh,
             cams.K.numpy(),
