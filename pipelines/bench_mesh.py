@@ -47,6 +47,7 @@ MESHERS = {
     "3dgs": ["tsdf"],
     "plenoxel": ["marching-cubes", "tsdf"],
     "nerf": ["marching-cubes"],
+    "sdf": ["marching-cubes"],  # the zero level set of the distance
 }
 GEOMETRY_KEYS = (
     "accuracy",

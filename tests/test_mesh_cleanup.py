@@ -4,7 +4,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from recon.mesh.cleanup import (
+    in_view,
     keep_largest_components,
+    keep_seen_components,
     keep_visible_faces,
     mesh_stats,
     remove_small_components,
@@ -76,6 +78,35 @@ def test_write_roundtrip(tmp_path, suffix):
 def test_write_rejects_unknown_format(tmp_path):
     with pytest.raises(ValueError):
         write_mesh(trimesh.creation.box(), tmp_path / "mesh.stl")
+
+
+def _camera_at_origin_looking_down_z(size=(100, 80)):
+    K = np.array([[50.0, 0, size[0] / 2], [0, 50.0, size[1] / 2], [0, 0, 1]])
+    return K, np.eye(4), np.array(size)
+
+
+def test_in_view_worked_example():
+    K, cam_from_world, size = _camera_at_origin_looking_down_z()
+    points = np.array([[0, 0, 1.0], [0, 0, -1.0], [0.99, 0, 1.0], [1.01, 0, 1.0], [0, 0.79, 1]])
+    # u = 50 x / z + 50: x = 0.99 -> 99.5 (inside [0, 100)), x = 1.01 -> 100.5 (outside);
+    # v = 50 y / z + 40: y = 0.79 -> 79.5 (inside [0, 80)); behind the camera is never in view
+    assert in_view(points, K, cam_from_world, size).tolist() == [True, False, True, False, True]
+
+
+def test_keep_seen_components_drops_what_no_camera_sees():
+    mesh = _scene_with_floaters()  # spheres at (0, 0, 0), (3, 0, 0) and the tiny one at (0, 3, 0)
+    mesh.apply_translation([0, 0, 5])
+    K, cam_from_world, size = _camera_at_origin_looking_down_z()  # sees |x|, |y| < ~4 at z = 5
+    seen = keep_seen_components(mesh, K[None], cam_from_world[None], size[None])
+    assert mesh_stats(seen)["components"] == 3
+    behind = cam_from_world.copy()
+    behind[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # turned around: sees nothing
+    assert len(keep_seen_components(mesh, K[None], behind[None], size[None]).faces) == 0
+    narrow = np.array([[20, 16]])  # a small image: only the big sphere projects inside it
+    kept = keep_seen_components(
+        mesh, np.array([[[50.0, 0, 10], [0, 50, 8], [0, 0, 1]]]), cam_from_world[None], narrow
+    )
+    assert mesh_stats(kept)["components"] == 1 and len(kept.faces) == 1280
 
 
 def _slab(z_front, z_back, half=0.5):

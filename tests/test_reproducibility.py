@@ -21,6 +21,16 @@ METHODS = {
     "ngp": ["--set", "rays_per_batch=512"],
     "nerf": ["--set", "rays_per_batch=256"],
     "3dgs": ["--set", "init_points=300"],
+    "sdf": [
+        "--set",
+        "rays_per_batch=256",
+        "--set",
+        "log2_table_size=14",
+        "--set",
+        "eikonal_points=256",
+        "--set",
+        "occupancy_res=16",
+    ],
 }
 
 

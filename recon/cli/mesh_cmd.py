@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
@@ -41,3 +43,6 @@ def command(workspace, run, force, as_json, **options):
             f"mesh: {result['method']} {result.get('vertices')} vertices, {result.get('faces')} faces "
             f"in {result['seconds']:.1f} s -> {result['path']}"
         )
+        if result["previews"]:
+            where = Path(result["path"]).parent
+            click.echo(f"mesh: previews -> {', '.join(str(where / n) for n in result['previews'])}")

@@ -174,40 +174,172 @@ def _layout_arrays(layout: dict[str, list[int]]) -> tuple[np.ndarray, ...]:
     ) + (np.asarray(layout["dense"], dtype=np.bool_),)
 
 
+def _encode(xs: Tensor, table: Tensor, layout: dict) -> Tensor:
+    """numba encoding of clamped positions xs (N, 3) -> (N, L F)."""
+    res, size, offset, dense = _layout_arrays(layout)
+    resf = res.astype(xs.numpy().dtype)
+    out = torch.empty((xs.shape[0], len(res) * table.shape[1]), dtype=table.dtype)
+    tab = table.detach().contiguous().numpy()
+    _hash_forward(xs.numpy(), tab, out.numpy(), res, resf, size, dense, offset)
+    return out
+
+
+def _encode_table_grad(xs: Tensor, grad_out: Tensor, layout: dict, table_shape) -> Tensor:
+    """The table's gradient (E, F) of the encoding at xs (N, 3) given grad_out (N, L F)."""
+    res, size, offset, dense = _layout_arrays(layout)
+    grad_table = torch.zeros(table_shape, dtype=grad_out.dtype)
+    L, F = len(res), table_shape[1]
+    g = grad_out.detach().reshape(grad_out.shape[0], L, F).permute(1, 0, 2).contiguous().numpy()
+    resf = res.astype(xs.numpy().dtype)
+    _hash_backward(xs.numpy(), grad_table.numpy(), g, res, resf, size, dense, offset)
+    return grad_table
+
+
 class _HashEncodeCPU(torch.autograd.Function):
     """numba forward/backward; gradient w.r.t. the table only (positions are data)."""
 
     @staticmethod
     def forward(ctx, x: Tensor, table: Tensor, layout: dict) -> Tensor:
-        res, size, offset, dense = _layout_arrays(layout)
         xs = x.detach().clamp(0.0, 1.0).contiguous()
-        resf = res.astype(xs.numpy().dtype)
-        out = torch.empty((x.shape[0], len(res) * table.shape[1]), dtype=table.dtype)
-        tab = table.detach().contiguous().numpy()
-        _hash_forward(xs.numpy(), tab, out.numpy(), res, resf, size, dense, offset)
         ctx.save_for_backward(xs)
         ctx.layout, ctx.table_shape = layout, table.shape
-        return out
+        return _encode(xs, table, layout)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
         (xs,) = ctx.saved_tensors
+        return None, _encode_table_grad(xs, grad_out, ctx.layout, ctx.table_shape), None
+
+
+@numba.njit(parallel=True, cache=True)
+def _jacobian_kernel(x, table, jac, res, resf, size, dense, offset, backward):  # pragma: no cover
+    """forward:  jac[l, p, k, a] = sum_c table[row_c, k] dw_c/dx_a
+    backward: table[row_c, k] += sum_a dw_c/dx_a jac[l, p, k, a]   (table = gradient buffer)
+
+    dw_c/dx_a = N_l (+-1) x the other two axes' weights (the trilinear weight is a product of
+    one factor per axis, f or 1 - f, and df/dx = N_l); 0 outside [0, 1] where x is clamped.
+    Level-major and parallel over levels like `_hash_backward` (no scatter races)."""
+    n_pts, n_levels, n_feat = x.shape[0], res.shape[0], table.shape[1]
+    for lv in numba.prange(n_levels):
+        n, nf, sz, off, dn = res[lv], resf[lv], size[lv], offset[lv], dense[lv]
+        stride_y = n + 1 if dn else np.int64(2654435761)
+        stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
+        pow2 = sz & (sz - 1) == 0
+        rows = np.empty(8, np.int64)
+        ws = np.empty(8, x.dtype)
+        dws = np.empty((8, 3), x.dtype)
+        for p in range(n_pts):
+            _fill_corners(x, p, n, nf, dn, sz, pow2, stride_y, stride_z, off, rows, ws)
+            fx = x[p, 0] * nf - min(np.int64(math.floor(x[p, 0] * nf)), n - 1)
+            fy = x[p, 1] * nf - min(np.int64(math.floor(x[p, 1] * nf)), n - 1)
+            fz = x[p, 2] * nf - min(np.int64(math.floor(x[p, 2] * nf)), n - 1)
+            inside = (
+                x[p, 0] > 0 and x[p, 0] < 1 and x[p, 1] > 0 and x[p, 1] < 1
+                and x[p, 2] > 0 and x[p, 2] < 1
+            )  # fmt: skip
+            c = 0
+            for dz in range(2):
+                wz = fz if dz else 1 - fz
+                sz_ = nf if dz else -nf
+                for dy in range(2):
+                    wy = fy if dy else 1 - fy
+                    sy = nf if dy else -nf
+                    for dx in range(2):
+                        wx = fx if dx else 1 - fx
+                        sx = nf if dx else -nf
+                        if inside:
+                            dws[c, 0] = sx * wy * wz
+                            dws[c, 1] = wx * sy * wz
+                            dws[c, 2] = wx * wy * sz_
+                        else:
+                            dws[c, 0] = dws[c, 1] = dws[c, 2] = 0.0
+                        c += 1
+            for k in range(n_feat):
+                if backward:
+                    for c in range(8):
+                        table[rows[c], k] += (
+                            dws[c, 0] * jac[lv, p, k, 0]
+                            + dws[c, 1] * jac[lv, p, k, 1]
+                            + dws[c, 2] * jac[lv, p, k, 2]
+                        )
+                else:
+                    for a in range(3):
+                        acc = 0.0
+                        for c in range(8):
+                            acc += dws[c, a] * table[rows[c], k]
+                        jac[lv, p, k, a] = acc
+
+
+class _HashJacobianCPU(torch.autograd.Function):
+    """d(encoding)/dx (N, L F, 3) by numba; differentiable in the table (it is linear in it),
+    not in x (the encoding's second derivative in x is not needed: sample points are data)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, table: Tensor, layout: dict) -> Tensor:
+        res, size, offset, dense = _layout_arrays(layout)
+        xs = x.detach().contiguous()
+        jac = torch.empty((len(res), x.shape[0], table.shape[1], 3), dtype=table.dtype)
+        _jacobian_kernel(
+            xs.numpy(), table.detach().contiguous().numpy(), jac.numpy(),
+            res, res.astype(xs.numpy().dtype), size, dense, offset, False,
+        )  # fmt: skip
+        ctx.save_for_backward(xs)
+        ctx.layout, ctx.table_shape = layout, table.shape
+        return jac.permute(1, 0, 2, 3).reshape(x.shape[0], len(res) * table.shape[1], 3)
+
+    @staticmethod
+    def backward(ctx, grad_jac: Tensor):
+        (xs,) = ctx.saved_tensors
         res, size, offset, dense = _layout_arrays(ctx.layout)
-        grad_table = torch.zeros(ctx.table_shape, dtype=grad_out.dtype)
         L, F = len(res), ctx.table_shape[1]
-        g = (
-            grad_out.reshape(grad_out.shape[0], L, F).permute(1, 0, 2).contiguous().numpy()
-        )  # (L, N, F)
-        resf = res.astype(xs.numpy().dtype)
-        _hash_backward(xs.numpy(), grad_table.numpy(), g, res, resf, size, dense, offset)
+        g = grad_jac.detach().reshape(-1, L, F, 3).permute(1, 0, 2, 3).contiguous()
+        grad_table = torch.zeros(ctx.table_shape, dtype=grad_jac.dtype)
+        _jacobian_kernel(
+            xs.numpy(), grad_table.numpy(), g.numpy(),
+            res, res.astype(xs.numpy().dtype), size, dense, offset, True,
+        )  # fmt: skip
         return None, grad_table, None
+
+
+def hash_jacobian_torch(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tensor:
+    """d(encoding)/dx (N, L F, 3) in pure torch (any device; the twin of the numba kernel):
+    sum_c table[row_c] dw_c/dx_a, with dw_c/dx_a = N_l (+-1) x the other two axes' factors;
+    0 outside (0, 1)^3, where the encoding clamps x."""
+    idx, _ = corner_indices_and_weights(x, layout)  # (N, L, 8)
+    res = torch.tensor(layout["resolution"], device=x.device).to(x.dtype)
+    pos = x.clamp(0.0, 1.0)[:, None, :] * res[None, :, None]  # (N, L, 3)
+    i0 = torch.minimum(pos.floor(), (res - 1)[None, :, None])
+    frac = pos - i0
+    bits = torch.tensor([[(c >> k) & 1 for k in range(3)] for c in range(8)], device=x.device)
+    factor = torch.where(bits.bool(), frac[:, :, None, :], 1.0 - frac[:, :, None, :])  # N,L,8,3
+    slope = torch.where(bits.bool(), 1.0, -1.0).to(x.dtype) * res[None, :, None, None]
+    dw = torch.stack(
+        [
+            slope[..., 0] * factor[..., 1] * factor[..., 2],
+            factor[..., 0] * slope[..., 1] * factor[..., 2],
+            factor[..., 0] * factor[..., 1] * slope[..., 2],
+        ],
+        -1,
+    )  # (N, L, 8, 3)
+    inside = ((x > 0) & (x < 1)).all(-1).to(x.dtype)[:, None, None, None]
+    jac = torch.einsum("nlcf,nlca->nlfa", table[idx], dw * inside)
+    return jac.flatten(1, 2)
+
+
+def hash_jacobian(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tensor:
+    """d(encoding)/dx (N, L F, 3) at x (N, 3), differentiable in the table (it is linear in
+    it) and not in x. The numba kernel on CPU, `hash_jacobian_torch` elsewhere."""
+    if x.device.type == "cpu" and x.dtype == table.dtype:
+        return _HashJacobianCPU.apply(x, table, layout)
+    return hash_jacobian_torch(x, table, layout)
 
 
 def hash_encode(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tensor:
     """Multiresolution hash encoding x (N, 3) in [0, 1]^3 -> (N, L F) (see module docstring).
 
     CPU tensors whose positions need no gradient use the numba kernel; anything else (CUDA,
-    d/dx for normals) uses `hash_encode_torch`. Both give the same values and table gradients.
+    d/dx by autograd) uses `hash_encode_torch`. Both give the same values and table gradients.
+    The Jacobian in x, for normals and an eikonal loss, is `hash_jacobian`.
     """
     if x.device.type == "cpu" and not x.requires_grad and x.dtype == table.dtype:
         return _HashEncodeCPU.apply(x, table, layout)

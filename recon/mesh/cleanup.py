@@ -49,6 +49,36 @@ def remove_small_components(
     return _keep_faces(mesh, big[labels])
 
 
+def in_view(points: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, size) -> np.ndarray:
+    """(N,) bool: the points (N, 3) project inside a camera's image (width, height) in front of
+    it (OpenCV pinhole: x_cam = [R | t] x, (u, v) = K x_cam / z, pixels [0, W) x [0, H))."""
+    x = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = x[:, 2]
+    uv = x @ K.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uv[:, 0] / z, uv[:, 1] / z
+    return (z > 0) & (u >= 0) & (u < size[0]) & (v >= 0) & (v < size[1])
+
+
+def keep_seen_components(
+    mesh: trimesh.Trimesh, K: np.ndarray, cam_from_world: np.ndarray, sizes: np.ndarray
+) -> trimesh.Trimesh:
+    """Drop the components no camera sees: none of their vertices projects inside any of the
+    images (K (C, 3, 3), cam_from_world (C, 4, 4) or (C, 3, 4), sizes (C, 2) width, height).
+    What a level set holds beyond every view (the box's corners, the back of the volume) is
+    not what the photos show."""
+    if len(mesh.faces) == 0:
+        return mesh.copy()
+    vertices = np.asarray(mesh.vertices, np.float64)
+    seen_vertex = np.zeros(len(vertices), bool)
+    for k, m, wh in zip(K, cam_from_world, sizes):
+        seen_vertex |= in_view(vertices, np.asarray(k, np.float64), np.asarray(m, np.float64), wh)
+    labels = component_labels(mesh)
+    seen = np.zeros(labels.max() + 1, bool)
+    seen[labels[seen_vertex[mesh.faces].any(axis=1)]] = True
+    return _keep_faces(mesh, seen[labels])
+
+
 def visible_faces(
     mesh: trimesh.Trimesh,
     K: np.ndarray,

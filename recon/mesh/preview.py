@@ -67,11 +67,14 @@ def shade_mesh(
     width: int,
     height: int,
     colours: np.ndarray | None = None,
+    vertex_normals: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The mesh (V, 3) world points, (F, 3) vertex indices, optional (V, 3) colours in [0, 1],
     seen by a pinhole camera K (3, 3), cam_from_world (4, 4) -> (H, W, 3) uint8 picture on white
     and (H, W) depth (inf where no face). A face is lit by a light at the camera, two-sided:
-    brightness AMBIENT + (1 - AMBIENT) |n . d| with d the unit ray to the face's centre."""
+    brightness AMBIENT + (1 - AMBIENT) |n . d| with d the unit ray to the face's centre. With
+    `vertex_normals` (V, 3) (a field's gradient, world frame) that brightness is taken at each
+    vertex (d the ray to the vertex) and interpolated across the faces (Gouraud 1971)."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64).reshape(-1, 3)
     R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
@@ -79,11 +82,18 @@ def shade_mesh(
     z = cam[:, 2]
     uvw = cam @ np.asarray(K, np.float64).T
     uv = uvw[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None]
-    normals = face_normals(cam, F)
-    centres = cam[F].mean(1)
-    rays = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
-    shade = AMBIENT + (1 - AMBIENT) * np.abs((normals * rays).sum(1))
     tint = 255.0 * (np.full((len(V), 3), 0.8) if colours is None else np.clip(colours, 0, 1))
+    if vertex_normals is None:
+        normals = face_normals(cam, F)
+        centres = cam[F].mean(1)
+        rays = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
+        shade = AMBIENT + (1 - AMBIENT) * np.abs((normals * rays).sum(1))
+    else:
+        n = np.asarray(vertex_normals, np.float64) @ R.T  # directions turn with R only
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        rays = cam / np.maximum(np.linalg.norm(cam, axis=1, keepdims=True), 1e-12)
+        tint = tint * (AMBIENT + (1 - AMBIENT) * np.abs((n * rays).sum(1)))[:, None]
+        shade = np.ones(len(F))
     image = np.full((height, width, 3), float(BACKGROUND))
     zbuf = np.full((height, width), np.inf)
     _rasterize(uv, z, F, shade, np.ascontiguousarray(tint, np.float64), image, zbuf)

@@ -25,6 +25,7 @@ METHOD_MODULES = {
     "ngp": "recon.models.ngp",
     "plenoxel": "recon.models.plenoxel",
     "3dgs": "recon.models.splatting",
+    "sdf": "recon.models.sdf",
 }
 METHOD_NAMES = list(METHOD_MODULES)
 MODEL_SCHEMA_VERSION = 1  # the layout of a saved model file (`save_model`)
