@@ -83,9 +83,11 @@ def test_initial_field_is_the_sphere_with_unit_gradient():
     assert float(eikonal_loss(grad)) < 1e-8
 
 
-def test_field_gradient_matches_central_differences_float64():
+@pytest.mark.parametrize("active_levels", [3, 1])
+def test_field_gradient_matches_central_differences_float64(active_levels):
     torch.manual_seed(0)
     field = SDFField(n_levels=3, log2_table_size=8, n_max=32, width=16).double()
+    field.active_levels = active_levels  # coarse-to-fine: the finer levels read as zero
     with torch.no_grad():
         field.grid.table.normal_(0.0, 0.05)  # switched-on features so the grid matters
         field.layers[0].weight.normal_(0.0, 0.2)
@@ -140,3 +142,21 @@ def test_eikonal_gradients_match_double_backward_through_the_torch_encoding_floa
     torch.testing.assert_close(grad, twin_grad, rtol=1e-10, atol=1e-12)
     for name in params:
         torch.testing.assert_close(params[name], twin_params[name], rtol=1e-8, atol=1e-12)
+
+
+def test_inactive_levels_change_nothing_and_get_no_gradient():
+    torch.manual_seed(0)
+    field = SDFField(n_levels=3, log2_table_size=8, n_max=32, width=16).double()
+    with torch.no_grad():
+        field.grid.table.normal_(0.0, 0.05)
+        field.layers[0].weight.normal_(0.0, 0.2)
+    x = torch.rand(50, 3, generator=torch.Generator().manual_seed(1), dtype=F64) * 2 - 1
+    field.active_levels = 1
+    sdf, grad, _ = sdf_and_gradient(field, x, create_graph=True)
+    (sdf.sum() + eikonal_loss(grad)).backward()
+    w_fine = field.layers[0].weight.grad[:, 3 + 2 :]  # the weights reading levels 1 and 2
+    assert float(w_fine.abs().max()) == 0.0
+    with torch.no_grad():  # the finer levels' features, whatever they hold, do not count
+        before = field.sdf(x)
+        field.layers[0].weight[:, 3 + 2 :].normal_(0.0, 1.0)
+        torch.testing.assert_close(field.sdf(x), before)

@@ -125,3 +125,12 @@ def test_training_state_round_trip_resumes_identically():
     b.load_training_state(a.training_state())
     la, lb = a.train_step(data, 5), b.train_step(data, 5)
     assert la["loss"] == lb["loss"]
+
+
+def test_coarse_to_fine_levels_schedule():
+    from recon.models.sdf import active_levels
+
+    assert [active_levels(s, 8, 16, 2000) for s in (0, 999, 1000, 1999, 2000, 9999)] == [
+        8, 11, 12, 15, 16, 16,
+    ]  # fmt: skip
+    assert active_levels(0, 16, 16, 2000) == 16  # start = all levels: off

@@ -54,6 +54,7 @@ class SDFField(nn.Module):
         dims = [3 + self.grid.out_dim] + [width] * n_hidden + [1 + geo_features]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in itertools.pairwise(dims))
         self.activation = nn.Softplus(beta=SOFTPLUS_BETA)
+        self.active_levels = n_levels  # coarse-to-fine: the finer levels read as zero
         self.geometric_init(radius)
 
     @torch.no_grad()
@@ -71,9 +72,24 @@ class SDFField(nn.Module):
                 if i == 0:
                     layer.weight[:, 3:].zero_()  # the hash features start switched off
 
+    def level_mask(self, like: Tensor) -> Tensor | None:
+        """(L F,) 1 for the features of the active levels, 0 beyond (None: all active)."""
+        n_features = self.grid.table.shape[1]
+        n_levels = self.grid.out_dim // n_features
+        if self.active_levels >= n_levels:
+            return None
+        mask = torch.zeros(n_levels, n_features, dtype=like.dtype, device=like.device)
+        mask[: self.active_levels] = 1.0
+        return mask.flatten()
+
+    def _encode(self, u: Tensor) -> Tensor:
+        enc = self.grid(u)
+        mask = self.level_mask(enc)
+        return enc if mask is None else enc * mask
+
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """x (N, 3) in [-1, 1]^3 -> (sdf (N,), geometry feature (N, geo_features))."""
-        h = torch.cat([x, self.grid((x + 1.0) / 2.0)], dim=-1)
+        h = torch.cat([x, self._encode((x + 1.0) / 2.0)], dim=-1)
         for layer in self.layers[:-1]:
             h = self.activation(layer(h))
         out = self.layers[-1](h)
@@ -89,7 +105,7 @@ class SDFField(nn.Module):
         x = x.detach()
         u = (x + 1.0) / 2.0  # du/dx = 1/2
         with torch.enable_grad():
-            h = torch.cat([x, self.grid(u)], dim=-1)
+            h = torch.cat([x, self._encode(u)], dim=-1)
             if not h.requires_grad:
                 h.requires_grad_(True)
             z = h
@@ -99,7 +115,11 @@ class SDFField(nn.Module):
             (g_h,) = torch.autograd.grad(out[:, 0].sum(), h, create_graph=create_graph)
             jac = hash_jacobian(u, self.grid.table, self.grid.layout)  # (N, L F, 3)
             radial = x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            grad = radial + g_h[:, :3] + 0.5 * torch.einsum("nj,nja->na", g_h[:, 3:], jac)
+            g_enc = g_h[:, 3:]  # d out / d (masked encoding): the masked levels' Jacobian is 0
+            mask = self.level_mask(g_enc)
+            if mask is not None:
+                g_enc = g_enc * mask
+            grad = radial + g_h[:, :3] + 0.5 * torch.einsum("nj,nja->na", g_enc, jac)
         sdf = x.norm(dim=-1) - self.radius + out[:, 0]
         if not create_graph:
             return sdf.detach(), grad.detach(), out[:, 1:].detach()

@@ -68,6 +68,10 @@ class SDFConfig:
     beta_min_steps: float = opt(
         0.25, "beta never falls below this many marching steps (a thinner shell than the samples)"
     )
+    levels_start: int = opt(
+        16, "coarse-to-fine: hash levels active at step 0 (Neuralangelo, Li et al. 2023, Sec. 3.2)"
+    )
+    levels_steps: int = opt(2000, "coarse-to-fine: steps until every level is active")
     eikonal_weight: float = opt(0.1, "lambda of the eikonal term")
     eikonal_points: int = opt(2048, "points drawn uniformly in the box each step for it")
     rays_per_batch: int = opt(1024, "rays of the first training step")
@@ -101,7 +105,7 @@ class SDFConfig:
 
 
 PRESETS = {"fast": {}, "paper": {"n_max": 2048, "log2_table_size": 19, "lr_decay_steps": 20000}}
-SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0}
+SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0, "levels_steps": 0.5}
 # The termination pre-pass evaluates this many samples of every ray first (`march_terminated`).
 TERMINATION_FIRST_SAMPLES = 32
 
@@ -267,6 +271,9 @@ class SDFModel(Model):
                 cfg.occupancy_threshold,
                 generator=self.generator,
             )
+        self.field.active_levels = active_levels(
+            step, cfg.levels_start, cfg.n_levels, cfg.levels_steps
+        )
         lr = exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps)
         set_lr(self.optimizer, lr, "grid")
         set_lr(self.optimizer, lr, "mlp")
@@ -322,6 +329,15 @@ class SDFModel(Model):
             "occupied_fraction": self.occupancy.occupancy_fraction(),
             "beta": self.beta().item() * self.half_size,
         }
+
+
+def active_levels(step: int, start: int, n_levels: int, steps: int) -> int:
+    """Hash levels in use at `step`: `start`, rising linearly to all `n_levels` at `steps`
+    (Neuralangelo's coarse-to-fine, Li et al. 2023, Sec. 3.2, on a CPU run's schedule).
+    Example: start 8 of 16 over 2,000 steps: 8 at step 0, 12 at 1,000, 16 from 2,000 on."""
+    if start >= n_levels or step >= steps:
+        return n_levels
+    return start + (n_levels - start) * step // steps
 
 
 def build(config: SDFConfig, scene: SceneInfo) -> SDFModel:
