@@ -47,11 +47,14 @@ sweep: install
 	$(BIN)/snakemake -s pipelines/Snakefile --configfile pipelines/config.yaml --cores 2
 
 # lego-200 (every method) + sfm on sample/fox, render throughput of those lego-200 runs (200 and
-# 800 px), then fox-real (3dgs and ngp on the real capture)
+# 800 px), fox-real (3dgs and ngp on the real capture), then meshes against ground truth
+# (sample_data and the walnut ring) and sample_data's mesh F-score against training time
 bench: install
 	$(BIN)/python pipelines/bench.py
 	$(BIN)/python pipelines/bench_render.py
 	$(BIN)/python pipelines/bench_real.py
+	$(BIN)/python pipelines/bench_mesh.py --methods ngp,plenoxel,3dgs,sdf
+	$(BIN)/python pipelines/bench_mesh.py --scenes sample --methods sdf,3dgs --curve 60,120,300,600
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -12,8 +12,11 @@ mean), precision / recall / F-score at tau = 1 % of the ground truth's bounding-
 (recon eval's default), normal consistency when the reference is a mesh; ORIGINAL units.
 
     python pipelines/bench_mesh.py [--scenes sample,walnut] [--methods ngp,3dgs] [--budget 240]
+    python pipelines/bench_mesh.py --scenes sample --methods sdf,3dgs --curve 60,120,300,600
 
 Writes bench/results/mesh_<scene>.json and .md; the JSON holds every number the CLI returned.
+`--curve`: one run per budget instead, F-score against training time in
+bench/results/mesh_curve_<scene>.{json,md,png}.
 """
 
 from __future__ import annotations
@@ -85,13 +88,17 @@ def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: 
     return row
 
 
-def train_or_reuse(ws: Path, method: str, budget: float, reuse: bool) -> dict:
-    """Train a run for `budget` seconds, or, with reuse, read the finished run's record."""
-    run_json = ws / "runs" / method / "run.json"
-    if reuse and run_json.exists() and (ws / "runs" / method / "model.pt").exists():
+def train_or_reuse(
+    ws: Path, method: str, budget: float, reuse: bool, run: str | None = None
+) -> dict:
+    """Train a run (named `run`, default the method) for `budget` seconds, or, with reuse, read
+    the finished run's record."""
+    run = run or method
+    run_json = ws / "runs" / run / "run.json"
+    if reuse and run_json.exists() and (ws / "runs" / run / "model.pt").exists():
         doc = json.loads(run_json.read_text())
         return {"steps": doc["steps"], "stop_reason": doc["stop_reason"], "reused": True}
-    print(f"bench_mesh: {ws.name} {method} train {budget:.0f} s ...", file=sys.stderr, flush=True)
+    print(f"bench_mesh: {ws.name} {run} train {budget:.0f} s ...", file=sys.stderr, flush=True)
     started = time.time()
     train = recon(
         "train",
@@ -100,7 +107,7 @@ def train_or_reuse(ws: Path, method: str, budget: float, reuse: bool) -> dict:
         "--method",
         method,
         "--run",
-        method,
+        run,
         "--time-budget",
         str(budget),
         "--threads",
@@ -146,6 +153,71 @@ def bench_scene(
                     {"run": method, "mesher": mesher, "error": str(e).splitlines()[-1]}
                 )
     return out
+
+
+def bench_curve(
+    scene: str, methods: list[str], budgets: list[float], resolution: int, work: Path, reuse: bool
+) -> dict:
+    """F-score (and Chamfer, test PSNR) against training time: one run per method and budget,
+    each with the schedules its budget lays out (what a user gets for that budget), meshed with
+    the method's first mesher."""
+    ws = work / scene
+    if not (ws / "sfm" / "cameras.json").exists():
+        recon("sfm", *SCENES[scene]["sfm"], "-w", str(ws))
+    out = {"scene": scene, "workspace": str(ws), "points": []}
+    for method in methods:
+        for budget in budgets:
+            run = f"{method}-{budget:g}s"
+            train = train_or_reuse(ws, method, budget, reuse, run)
+            mesher = MESHERS[method][0]
+            print(f"bench_mesh: {scene} {run} {mesher} ...", file=sys.stderr, flush=True)
+            row = mesh_and_score(ws, run, mesher, resolution, SCENES[scene]["eval"])
+            row.pop("mesh_json")
+            out["points"].append({"method": method, "budget_s": budget, **train, **row})
+    return out
+
+
+def curve_markdown(res: dict) -> str:
+    lines = [
+        f"# F-score against training time: {res['scene']} ({res['date']})",
+        "",
+        (
+            "One run per method and budget, 2 threads, load average at start "
+            f"{res['load_average']}; tau = 1 % of the ground truth's diagonal (original units). "
+            f"Plot: `mesh_curve_{res['scene']}.png`."
+        ),
+        "",
+        "| method | budget s | steps | mesher | faces | Chamfer | F-score | test PSNR |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for p in res["points"]:
+        lines.append(
+            f"| {p['method']} | {p['budget_s']:g} | {p['steps']} | {p['mesher']} | {p['faces']} "
+            f"| {p.get('chamfer', float('nan')):.4f} | {p.get('fscore', float('nan')):.3f} "
+            f"| {p.get('test_psnr') or float('nan'):.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot_curve(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.5), dpi=120)
+    for method in dict.fromkeys(p["method"] for p in res["points"]):
+        pts = [p for p in res["points"] if p["method"] == method]
+        ax.plot([p["budget_s"] for p in pts], [p.get("fscore") for p in pts], "o-", label=method)
+    ax.set_xscale("log")
+    ax.set_xlabel("training time budget (s, 2 CPU threads)")
+    ax.set_ylabel("F-score at tau = 1 % of the diagonal")
+    ax.set_title(f"{res['scene']}: mesh F-score against training time")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def keep_other_methods(res: dict, previous: Path) -> None:
@@ -231,6 +303,12 @@ def markdown(res: dict) -> str:
 @click.option(
     "--reuse-runs", is_flag=True, help="Mesh and score finished runs again instead of retraining."
 )
+@click.option(
+    "--curve",
+    default="",
+    help="Budgets in seconds, e.g. 60,120,300,600: F-score against training time instead "
+    "(bench/results/mesh_curve_<scene>.{json,md,png}).",
+)
 def main(
     scenes: str,
     methods: str,
@@ -239,10 +317,23 @@ def main(
     work: str,
     out_dir: str,
     reuse_runs: bool,
+    curve: str,
 ) -> None:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for scene in scenes.split(","):
+        if curve:
+            load = [round(x, 2) for x in os.getloadavg()]
+            budgets = [float(b) for b in curve.split(",")]
+            res = bench_curve(
+                scene, methods.split(","), budgets, resolution, Path(work) / "mesh", reuse_runs
+            )
+            res.update({"date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")})
+            res.update({"load_average": load, "resolution": resolution})
+            (out / f"mesh_curve_{scene}.json").write_text(json.dumps(res, indent=1) + "\n")
+            (out / f"mesh_curve_{scene}.md").write_text(curve_markdown(res))
+            plot_curve(res, out / f"mesh_curve_{scene}.png")
+            continue
         load = os.getloadavg()
         res = bench_scene(
             scene, methods.split(","), budget, resolution, Path(work) / "mesh", reuse_runs
