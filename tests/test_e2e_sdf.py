@@ -30,7 +30,7 @@ def workspace(tmp_path_factory):
     for run, steps in (("sdf", "400"), ("sphere", "1")):
         recon_cli(
             "train", "-w", str(ws), "--method", "sdf", "--run", run, "--steps", steps,
-            "--downscale", "2", "--eval-every", "1e9", *SMALL,
+            "--downscale", "2", "--eval-every", "1e9", "--eval-views", "1", *SMALL,
         )  # fmt: skip
     return ws
 
