@@ -198,6 +198,20 @@ def test_fit_schedules_worked_example():
     assert fit(long) == long  # a run longer than the schedules keeps them
 
 
+def test_replan_shortens_the_schedules_and_the_densification_that_follows_them():
+    """A run re-planned from 1,600 to 1,000 steps at step 500: lr decay and densification end
+    earlier (the strategy follows), a longer estimate changes nothing, and the run's last
+    densification step still comes once (here at once: 700 would be past)."""
+    scene, _ = synthetic_scene()
+    model = GaussianModel(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}), scene)
+    assert (model.config.lr_decay_steps, model.strategy.stop) == (1600, 1120)
+    assert model.replan(1000, 500) == 1000
+    assert (model.config.lr_decay_steps, model.config.densify_stop) == (1000, 700)
+    assert model.strategy.stop == 700 and model.config.schedule_steps == 1000
+    assert model.replan(1200, 600) == 0 and model.strategy.stop == 700
+    assert model.replan(800, 650) == 800 and model.strategy.stop == 651
+
+
 def test_coarse_to_fine_fits_downscaled_targets_first():
     scene, data = synthetic_scene(size=256)
     model = GaussianModel(config(c2f_factor=4, c2f_interval=3), scene)

@@ -51,3 +51,28 @@ def test_fit_schedules_worked_example():
     assert fit_schedules(Toy(), fractions) == Toy(1600, 1600, 1120)
     assert fit_schedules(Toy(schedule_steps=0), fractions) == Toy(0)  # not planned
     assert fit_schedules(Toy(schedule_steps=9000), fractions) == Toy(9000)  # long enough
+
+
+def test_refit_schedules_worked_example_and_limits():
+    """Mid-run re-fits shrink only; a schedule never ends in the past (one that would ends at
+    the next step); one already ended, or an interval already fired, stays as it was."""
+    from dataclasses import dataclass
+
+    from recon.models.schedules import refit_schedules
+
+    @dataclass(frozen=True)
+    class Toy:
+        schedule_steps: int = 3359
+        lr_decay_steps: int = 3359
+        densify_stop: int = 2351
+        reset_interval: int = 1176
+
+    fractions = {"lr_decay_steps": 1.0, "densify_stop": 0.7, "reset_interval": 0.35}
+    # the reset not yet fired is due at once (735 is past), then keeps its interval
+    assert refit_schedules(Toy(), fractions, 2100, 1000) == Toy(2100, 2100, 1470, 1001)
+    assert refit_schedules(Toy(), fractions, 2100, 1600) == Toy(2100, 2100, 1601, 1176)
+    assert refit_schedules(Toy(), fractions, 2100, 700) == Toy(2100, 2100, 1470, 735)
+    assert refit_schedules(Toy(), fractions, 4000, 1000) == Toy()  # longer: unchanged
+    assert refit_schedules(Toy(schedule_steps=0), fractions, 2100, 1000) == Toy(0)  # unplanned
+    ended = Toy(densify_stop=900, reset_interval=400)  # densification over, a reset fired
+    assert refit_schedules(ended, fractions, 1100, 1000) == Toy(1100, 1100, 900, 400)

@@ -153,6 +153,13 @@ class Model(nn.Module):
     def load_training_state(self, state: dict) -> None:
         pass
 
+    def replan(self, schedule_steps: int, step: int) -> int:
+        """Lay the step schedules fitted to the run's planned length (lr decay, densification)
+        out anew, before 0-based `step`, for a run now expected to end after `schedule_steps`
+        steps (shrink only, `recon.models.schedules.refit_schedules`). Returns the run length
+        the schedules now follow if they changed, else 0 (also: no such schedules)."""
+        return 0
+
     def reseed(self, seed: int) -> None:
         """Reseed every torch.Generator the model owns (after a rollback, retried steps must
         not replay the batches that produced a non-finite loss)."""

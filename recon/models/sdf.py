@@ -38,7 +38,7 @@ from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import mlp, points_in_box, ray_bounds, render_image, sample_rays
-from recon.models.schedules import exp_decay_lr, fit_schedules, set_lr
+from recon.models.schedules import exp_decay_lr, fit_schedules, refit_schedules, set_lr
 from recon.options import opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, volume_render
 from recon.volrend.occupancy import MarchFn, march_terminated
@@ -260,6 +260,13 @@ class SDFModel(Model):
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], bg), grad
 
     # ---- Model interface ---------------------------------------------------------------------
+    def replan(self, schedule_steps: int, step: int) -> int:
+        cfg = refit_schedules(self.cfg, SCHEDULE_FRACTIONS, schedule_steps, step)
+        if cfg == self.cfg:
+            return 0
+        self.cfg = cfg
+        return cfg.schedule_steps
+
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         cfg = self.cfg
         if step % cfg.occupancy_every == 0:

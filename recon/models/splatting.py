@@ -50,7 +50,7 @@ from recon.gaussians.ssim import ssim
 from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
-from recon.models.schedules import exp_decay_lr, fit_schedules, set_lr
+from recon.models.schedules import exp_decay_lr, fit_schedules, refit_schedules, set_lr
 from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
@@ -387,6 +387,14 @@ class GaussianModel(Model):
             "psnr": training_psnr(mse),
             "num_gaussians": float(self.num_gaussians),
         }
+
+    def replan(self, schedule_steps: int, step: int) -> int:
+        config = refit_schedules(self.config, SCHEDULE_FRACTIONS, schedule_steps, step)
+        if config == self.config:
+            return 0
+        self.config = config
+        self.strategy = densify_strategy(config)
+        return config.schedule_steps
 
     def _train_camera(self, data: TrainData, view: int, step: int) -> Cameras:
         """Training view `view`'s camera; with pose_refine, corrected by its learnt twist (and

@@ -26,6 +26,7 @@ from recon.cameras import Cameras
 from recon.metrics.image import training_psnr
 from recon.models.base import Model, TrainData
 from recon.train.config import TrainConfig
+from recon.train.replan import Replanner
 
 
 @dataclass
@@ -40,6 +41,7 @@ class LoopState:
     eval_cost_s: float = 0.0  # how long the last held-out evaluation took (or a re-measure)
     eval_total_s: float = 0.0  # how long all held-out evaluations took
     eval_cost_wall: float = 0.0  # wall_s when eval_cost_s was measured
+    schedule_steps: int = 0  # the run length the model's schedules were last re-planned to
 
 
 @torch.no_grad()
@@ -134,6 +136,7 @@ def run_loop(
             reason = should_stop(cfg, st)
         return reason
 
+    replanner = Replanner.starting_at(cfg.time_budget_s, st) if cfg.time_budget_s > 0 else None
     while (reason := stop_reason()) is None:
         if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
             raise KeyboardInterrupt
@@ -152,6 +155,8 @@ def run_loop(
             raise FloatingPointError(f"the loss became {stats.get('loss')} at step {st.step}")
         if st.step % 10 == 0 or st.step == 1:
             log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
+        if replanner is not None and (projected := replanner.after_step(st)) is not None:
+            _replan(model, min(projected, cfg.steps or projected), st, log)
         if progress is not None:
             report_progress(progress, cfg, st, stats)
         if st.wall_s - st.last_ckpt_wall >= cfg.checkpoint_every_s:
@@ -164,6 +169,22 @@ def run_loop(
         _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
         tick()
     return reason
+
+
+def _replan(model: Model, projected: int, st: LoopState, log: Callable[[dict], None]) -> None:
+    """Have the model fit its step schedules into a run of `projected` steps (`recon.train.
+    replan`); a change is kept in the loop state (checkpoints, resume) and logged."""
+    followed = model.replan(projected, st.step)
+    if followed:
+        st.schedule_steps = followed
+        log(
+            {
+                "step": st.step,
+                "wall_s": round(st.wall_s, 4),
+                "event": "replan",
+                "schedule_steps": followed,
+            }
+        )
 
 
 def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict], None]) -> None:

@@ -226,6 +226,8 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         model.load_state_dict(ck["model"])
         model.load_training_state(ck["training"])
         st = LoopState(**ck["loop"])
+        if st.schedule_steps:  # the schedules as the run had re-planned them (`train.replan`)
+            model.replan(st.schedule_steps, st.step)
         torch.set_rng_state(ck["rng"])
         _truncate_log(log_path, st.step)
         run_doc = {**json.loads(ws.run_json(run).read_text()), "status": "running"}
@@ -326,6 +328,11 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
             signal.signal(sig, handler)
     checkpoint(st)
     log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
+    if st.schedule_steps:
+        log_fn(
+            f"schedules re-planned for ~{st.schedule_steps} steps from the measured step rate "
+            f"(planned ~{method_cfg.schedule_steps}); {st.step} made"
+        )
     t_finish = time.perf_counter()
     finished = model.finish(data)
     if finished:  # a last clean-up of the model (`Model.finish`), outside the time budget
@@ -340,6 +347,16 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         "steps": st.step,
         "train_wall_s": round(st.wall_s, 3),
         "elapsed_s": round(st.elapsed_s, 3),
+        **(
+            {
+                "schedule_steps": {
+                    "planned": method_cfg.schedule_steps,
+                    "replanned": st.schedule_steps,
+                }
+            }
+            if getattr(method_cfg, "schedule_steps", 0)
+            else {}
+        ),
         "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
         "model_stats": {k: float(v) for k, v in model.stats().items()},
         "model_bytes": os.path.getsize(ws.model_path(run)),
