@@ -40,7 +40,7 @@ class Planned:
 def test_a_budgeted_loop_hands_the_model_a_shorter_run(monkeypatch):
     import time
 
-    import recon.train.replan as replan
+    from recon.train import replan
     from tests.test_train_loop import Toy, _data
 
     class Slow(Toy):
