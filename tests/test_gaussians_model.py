@@ -200,16 +200,25 @@ def test_fit_schedules_worked_example():
 
 def test_replan_shortens_the_schedules_and_the_densification_that_follows_them():
     """A run re-planned from 1,600 to 1,000 steps at step 500: lr decay and densification end
-    earlier (the strategy follows), a longer estimate changes nothing, and the run's last
-    densification step still comes once (here at once: 700 would be past)."""
+    earlier (the strategy follows); longer estimates lengthen them back, never past the plan;
+    an end that would be past comes at the next step."""
     scene, _ = synthetic_scene()
     model = GaussianModel(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}), scene)
     assert (model.config.lr_decay_steps, model.strategy.stop) == (1600, 1120)
     assert model.replan(1000, 500) == 1000
     assert (model.config.lr_decay_steps, model.config.densify_stop) == (1000, 700)
     assert model.strategy.stop == 700 and model.config.schedule_steps == 1000
-    assert model.replan(1200, 600) == 0 and model.strategy.stop == 700
-    assert model.replan(800, 650) == 800 and model.strategy.stop == 651
+    assert model.replan(1000, 550) == 0  # the same estimate: nothing changes
+    assert model.replan(800, 550) == 800 and model.strategy.stop == 560
+    # a longer estimate lengthens back what has not ended, never beyond the plan
+    assert model.replan(1200, 555) == 1200 and model.strategy.stop == 840
+    assert model.replan(5000, 600) == 1600 and model.strategy.stop == 1120
+    # densification over: a shorter estimate moves the lr decay only
+    assert model.replan(1300, 1200) == 1300 and model.strategy.stop == 1120
+    assert model.config.lr_decay_steps == 1300
+    # re-planned shorter than what is past: the densification's last step comes at once
+    fresh = GaussianModel(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}), scene)
+    assert fresh.replan(800, 650) == 800 and fresh.strategy.stop == 651
 
 
 def test_coarse_to_fine_fits_downscaled_targets_first():

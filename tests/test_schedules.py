@@ -54,8 +54,9 @@ def test_fit_schedules_worked_example():
 
 
 def test_refit_schedules_worked_example_and_limits():
-    """Mid-run re-fits shrink only; a schedule never ends in the past (one that would ends at
-    the next step); one already ended, or an interval already fired, stays as it was."""
+    """Mid-run re-fits follow the latest estimate, never beyond the plan; a schedule never ends
+    in the past (one that would ends at the next step); one already ended, or an interval
+    already fired, stays as it was."""
     from dataclasses import dataclass
 
     from recon.models.schedules import refit_schedules
@@ -68,11 +69,21 @@ def test_refit_schedules_worked_example_and_limits():
         reset_interval: int = 1176
 
     fractions = {"lr_decay_steps": 1.0, "densify_stop": 0.7, "reset_interval": 0.35}
+    plan = Toy()
+
+    def refit(current, steps, step):
+        return refit_schedules(plan, current, fractions, steps, step)
+
     # the reset not yet fired is due at once (735 is past), then keeps its interval
-    assert refit_schedules(Toy(), fractions, 2100, 1000) == Toy(2100, 2100, 1470, 1001)
-    assert refit_schedules(Toy(), fractions, 2100, 1600) == Toy(2100, 2100, 1601, 1176)
-    assert refit_schedules(Toy(), fractions, 2100, 700) == Toy(2100, 2100, 1470, 735)
-    assert refit_schedules(Toy(), fractions, 4000, 1000) == Toy()  # longer: unchanged
-    assert refit_schedules(Toy(schedule_steps=0), fractions, 2100, 1000) == Toy(0)  # unplanned
-    ended = Toy(densify_stop=900, reset_interval=400)  # densification over, a reset fired
-    assert refit_schedules(ended, fractions, 1100, 1000) == Toy(1100, 1100, 900, 400)
+    shorter = refit(plan, 2100, 1000)
+    assert shorter == Toy(2100, 2100, 1470, 1001)
+    assert refit(shorter, 2500, 1200) == Toy(2500, 2500, 1750, 1001)  # grows back
+    assert refit(shorter, 9000, 1200) == Toy(3359, 3359, 2351, 1001)  # never beyond the plan
+    assert refit(plan, 2100, 1600) == Toy(2100, 2100, 1601, 1176)
+    assert refit(plan, 2100, 700) == Toy(2100, 2100, 1470, 735)
+    assert refit(plan, 4000, 1000) == plan  # longer than planned: unchanged
+    unplanned = Toy(0, 5000, 2000, 1000)
+    assert refit_schedules(unplanned, unplanned, fractions, 2100, 10) == unplanned
+    ended = Toy(1500, 1500, 900, 400)  # densification over, a reset fired
+    assert refit(ended, 1100, 1000) == Toy(1100, 1100, 900, 400)
+    assert refit(ended, 3000, 1000) == Toy(3000, 3000, 900, 400)

@@ -43,23 +43,28 @@ def fit_schedules(config: C, fractions: dict[str, float]) -> C:
     return replace(config, **fitted)
 
 
-def refit_schedules(config: C, fractions: dict[str, float], schedule_steps: int, step: int) -> C:
-    """The config re-fitted mid-run, before 0-based `step`, to a run now expected to last only
-    `schedule_steps` steps (`fit_schedules` shrinks only, so a longer estimate changes
-    nothing). A schedule never ends in the past: one that would is ended at step + 1 (what
-    was due at its end, such as the last densification's pruning, still happens once), and
-    one that has already ended stays as it was. A step-interval schedule that has already fired
-    (`step` past its first interval, e.g. an opacity reset) keeps its interval: shrinking it
-    would fire it again at an arbitrary step. Example: fractions {"lr_decay_steps": 1.0,
-    "densify_stop": 0.7}, lr_decay_steps 3,359, densify_stop 2,351, re-fitted to 2,100 steps
-    at step 1,000 -> 2,100 and 1,470; at step 1,600 -> 2,100 and 1,601."""
-    if config.schedule_steps <= 0 or schedule_steps >= config.schedule_steps:
-        return config
+def refit_schedules(
+    planned: C, current: C, fractions: dict[str, float], schedule_steps: int, step: int
+) -> C:
+    """The `current` config re-fitted mid-run, before 0-based `step`, to a run now expected to
+    last `schedule_steps` steps: each schedule named in `fractions` as `fit_schedules` would
+    fit the `planned` config (the one fitted when the run began) into min(schedule_steps,
+    planned length): an estimate that grows again (a slow stretch was a one-off) lengthens
+    the schedules back, never beyond the plan. A schedule never ends in the past: one that
+    would is ended at step + 1 (what was due at its end, such as the last densification's
+    pruning, still happens once); one that has already ended stays as it was, and so does a
+    step interval that has already fired (an opacity reset: shrinking it would fire it again
+    at an arbitrary step). Example: fractions {"lr_decay_steps": 1.0, "densify_stop": 0.7},
+    planned 3,359 and 2,351, re-fitted to 2,100 steps at step 1,000 -> 2,100 and 1,470; then
+    to 2,500 at step 1,200 -> 2,500 and 1,750."""
+    if planned.schedule_steps <= 0:
+        return current
+    length = min(schedule_steps, planned.schedule_steps)
     fitted = {}
     for name, fraction in fractions.items():
-        now = getattr(config, name)
-        if name.endswith("_interval") and step >= now:
+        now = getattr(current, name)
+        if now <= step:  # ended (or an interval that has fired): stays
             continue
-        target = max(1, round(fraction * schedule_steps))
-        fitted[name] = now if now <= step else min(now, max(target, step + 1))
-    return replace(config, schedule_steps=schedule_steps, **fitted)
+        target = min(getattr(planned, name), max(1, round(fraction * length)))
+        fitted[name] = max(target, step + 1)
+    return replace(current, schedule_steps=length, **fitted)

@@ -117,6 +117,7 @@ class SDFModel(Model):
     def __init__(self, cfg: SDFConfig, scene: SceneInfo):
         super().__init__()
         self.cfg = cfg = fit_schedules(cfg, SCHEDULE_FRACTIONS)
+        self._planned = cfg  # as fitted to the planned run (`replan` starts from it)
         self.scene = scene
         self.register_buffer("aabb", scene.aabb.clone().float())
         self.register_buffer("background", scene.background.clone().float())
@@ -261,7 +262,7 @@ class SDFModel(Model):
 
     # ---- Model interface ---------------------------------------------------------------------
     def replan(self, schedule_steps: int, step: int) -> int:
-        cfg = refit_schedules(self.cfg, SCHEDULE_FRACTIONS, schedule_steps, step)
+        cfg = refit_schedules(self._planned, self.cfg, SCHEDULE_FRACTIONS, schedule_steps, step)
         if cfg == self.cfg:
             return 0
         self.cfg = cfg

@@ -267,6 +267,7 @@ class GaussianModel(Model):
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()
         self.config = config = fit_schedules(config, SCHEDULE_FRACTIONS)
+        self._planned = config  # as fitted to the planned run (`replan` starts from it)
         self.strategy = densify_strategy(config)
         self.register_buffer("background", scene.background.float().clone())
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
@@ -389,7 +390,9 @@ class GaussianModel(Model):
         }
 
     def replan(self, schedule_steps: int, step: int) -> int:
-        config = refit_schedules(self.config, SCHEDULE_FRACTIONS, schedule_steps, step)
+        config = refit_schedules(
+            self._planned, self.config, SCHEDULE_FRACTIONS, schedule_steps, step
+        )
         if config == self.config:
             return 0
         self.config = config
