@@ -6,10 +6,12 @@ method's step time measured once on one machine. A slower machine, another load,
 scene whose model grows more than expected makes fewer steps: a fox 3dgs run planned at
 3,359 steps made 2,016, so it ended still densifying with its means learning rate
 undecayed. So the loop measures the training step rate over windows of `REPLAN_EVERY_S`
-seconds and, when the steps left at that rate fall short of the plan, has the model lay its
-schedules out over the shorter run (`Model.replan`; shrink only: a schedule that has passed
-cannot be laid out again). A 3DGS step slows as Gaussians are added, so each window's
-estimate is still a little long; the next windows shorten it further while densifying.
+seconds and has the model lay its schedules out over the run that estimate gives, never
+longer than planned (`Model.replan`; a schedule that has ended stays ended). A 3DGS step
+slows as Gaussians are added, so each window's estimate is still a little long; the next
+windows shorten it further while densifying. A one-off slow window (lego's pruning when
+densification ends) made a run planned at 6,000 steps re-plan to 4,077 and then make 6,746,
+so later estimates lengthen the schedules back up to the plan.
 """
 
 from __future__ import annotations
