@@ -157,8 +157,8 @@ class Model(nn.Module):
         """Lay the step schedules fitted to the run's planned length (lr decay, densification)
         out anew, before 0-based `step`, for a run now expected to end after `schedule_steps`
         steps (never longer than planned, `recon.models.schedules.refit_schedules`). Returns
-        the run length
-        the schedules now follow if they changed, else 0 (also: no such schedules)."""
+        the run length the schedules now follow if they changed, else 0 (also: no such
+        schedules)."""
         return 0
 
     def reseed(self, seed: int) -> None:
