@@ -20,13 +20,16 @@ def test_windows_warm_up_then_project_at_the_recent_rate():
     per second of training, not the first window's 10) over the time left, scaled by the run's
     training share."""
     planner = Replanner(600.0, 0, 0.0, 0.0, every_s=30.0, warmup_windows=1)
-    assert planner.after_step(LoopState(step=100, wall_s=10.0, elapsed_s=10.0)) is None
-    assert planner.after_step(LoopState(step=300, wall_s=30.0, elapsed_s=30.0)) is None  # warm-up
-    assert planner.after_step(LoopState(step=320, wall_s=40.0, elapsed_s=50.0)) is None
+    assert planner.after_step(100, 10.0, 10.0, 0.0) is None
+    assert planner.after_step(300, 30.0, 30.0, 0.0) is None  # warm-up
+    assert planner.after_step(320, 40.0, 50.0, 0.0) is None
     # window 30 -> 60 s: 60 steps in 24 s of training; 54 of 60 s spent training so far
-    st = LoopState(step=360, wall_s=54.0, elapsed_s=60.0)
-    assert planner.after_step(st) == projected_steps(360, 2.5, 0.9, 600.0, 60.0, 0.0) == 1575
-    assert planner.after_step(LoopState(step=361, wall_s=54.5, elapsed_s=61.0)) is None
+    assert (
+        planner.after_step(360, 54.0, 60.0, 0.0)
+        == projected_steps(360, 2.5, 0.9, 600.0, 60.0, 0.0)
+        == 1575
+    )
+    assert planner.after_step(361, 54.5, 61.0, 0.0) is None
 
 
 @dataclasses.dataclass

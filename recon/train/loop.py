@@ -136,7 +136,9 @@ def run_loop(
             reason = should_stop(cfg, st)
         return reason
 
-    replanner = Replanner.starting_at(cfg.time_budget_s, st) if cfg.time_budget_s > 0 else None
+    replanner = None
+    if cfg.time_budget_s > 0:
+        replanner = Replanner.starting_at(cfg.time_budget_s, st.step, st.wall_s, st.elapsed_s)
     while (reason := stop_reason()) is None:
         if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
             raise KeyboardInterrupt
@@ -155,7 +157,9 @@ def run_loop(
             raise FloatingPointError(f"the loss became {stats.get('loss')} at step {st.step}")
         if st.step % 10 == 0 or st.step == 1:
             log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
-        if replanner is not None and (projected := replanner.after_step(st)) is not None:
+        if replanner is not None and (
+            projected := replanner.after_step(st.step, st.wall_s, st.elapsed_s, st.eval_cost_s)
+        ):
             _replan(model, min(projected, cfg.steps or projected), st, log)
         if progress is not None:
             report_progress(progress, cfg, st, stats)

@@ -17,10 +17,6 @@ so later estimates lengthen the schedules back up to the plan.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:  # the loop imports this module
-    from recon.train.loop import LoopState
 
 REPLAN_EVERY_S = 30.0  # length of a step-rate window, in seconds of the run
 REPLAN_WARMUP_WINDOWS = 1  # windows measured before the first re-plan (initialisation, caches)
@@ -60,21 +56,21 @@ class Replanner:
         self.window = (self.start_step, self.start_wall, self.start_elapsed)
 
     @classmethod
-    def starting_at(cls, budget_s: float, st: LoopState) -> Replanner:
-        return cls(
-            budget_s, st.step, st.wall_s, st.elapsed_s, REPLAN_EVERY_S, REPLAN_WARMUP_WINDOWS
-        )
+    def starting_at(cls, budget_s: float, step: int, wall_s: float, elapsed_s: float):
+        return cls(budget_s, step, wall_s, elapsed_s, REPLAN_EVERY_S, REPLAN_WARMUP_WINDOWS)
 
-    def after_step(self, st: LoopState) -> int | None:
+    def after_step(
+        self, step: int, wall_s: float, elapsed_s: float, reserve_s: float
+    ) -> int | None:
+        """After a step, with the loop's clocks (`LoopState`: steps, training time, run time,
+        the final evaluation's reserve)."""
         step0, wall0, elapsed0 = self.window
-        if st.elapsed_s - elapsed0 < self.every_s or st.wall_s <= wall0:
+        if elapsed_s - elapsed0 < self.every_s or wall_s <= wall0:
             return None
-        self.window = (st.step, st.wall_s, st.elapsed_s)
+        self.window = (step, wall_s, elapsed_s)
         self.windows += 1
         if self.windows <= self.warmup_windows:
             return None
-        rate = (st.step - step0) / (st.wall_s - wall0)
-        share = (st.wall_s - self.start_wall) / max(st.elapsed_s - self.start_elapsed, 1e-9)
-        return projected_steps(
-            st.step, rate, min(share, 1.0), self.budget_s, st.elapsed_s, st.eval_cost_s
-        )
+        rate = (step - step0) / (wall_s - wall0)
+        share = (wall_s - self.start_wall) / max(elapsed_s - self.start_elapsed, 1e-9)
+        return projected_steps(step, rate, min(share, 1.0), self.budget_s, elapsed_s, reserve_s)
