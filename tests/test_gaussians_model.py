@@ -219,6 +219,10 @@ def test_replan_shortens_the_schedules_and_the_densification_that_follows_them()
     # re-planned shorter than what is past: the densification's last step comes at once
     fresh = GaussianModel(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}), scene)
     assert fresh.replan(800, 650) == 800 and fresh.strategy.stop == 651
+    # a checkpoint keeps the schedules as re-planned (clamps and ended ones included): resume
+    resumed = GaussianModel(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}), scene)
+    resumed.load_training_state(fresh.training_state())
+    assert resumed.config == fresh.config and resumed.strategy == fresh.strategy
 
 
 def test_coarse_to_fine_fits_downscaled_targets_first():

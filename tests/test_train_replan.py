@@ -34,7 +34,7 @@ def test_windows_warm_up_then_project_at_the_recent_rate():
 
 @dataclasses.dataclass
 class Planned:
-    """A model that takes 5 ms a step and lays a 10,000-step schedule out (shrink only)."""
+    """The schedule a test model lays out: 10,000 steps, shortened by `replan` (shrink only)."""
 
     schedule_steps: int = 10_000
     calls: list = dataclasses.field(default_factory=list)

@@ -68,3 +68,9 @@ def refit_schedules(
         target = min(getattr(planned, name), max(1, round(fraction * length)))
         fitted[name] = max(target, step + 1)
     return replace(current, schedule_steps=length, **fitted)
+
+
+def schedule_state(config: C, fractions: dict[str, float]) -> dict[str, int]:
+    """The re-plannable schedules of a config (`refit_schedules`) as a checkpoint keeps them:
+    `replace(config, **state)` restores them exactly, clamps and ended schedules included."""
+    return {name: getattr(config, name) for name in ("schedule_steps", *fractions)}

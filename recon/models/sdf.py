@@ -38,7 +38,13 @@ from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.raymarch import mlp, points_in_box, ray_bounds, render_image, sample_rays
-from recon.models.schedules import exp_decay_lr, fit_schedules, refit_schedules, set_lr
+from recon.models.schedules import (
+    exp_decay_lr,
+    fit_schedules,
+    refit_schedules,
+    schedule_state,
+    set_lr,
+)
 from recon.options import opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, volume_render
 from recon.volrend.occupancy import MarchFn, march_terminated
@@ -324,12 +330,15 @@ class SDFModel(Model):
             "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "n_rays": self.n_rays,
+            "schedules": schedule_state(self.cfg, SCHEDULE_FRACTIONS),
         }
 
     def load_training_state(self, state: dict) -> None:
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         self.n_rays = int(state["n_rays"])
+        if "schedules" in state:  # as re-planned (`replan`) by the step it was saved at
+            self.cfg = replace(self.cfg, **state["schedules"])
 
     def stats(self) -> dict[str, float]:
         return {

@@ -23,7 +23,7 @@ of a pixel) and 5,400 steps end at 31.5 dB against 32.8 dB without; fox gains no
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -50,7 +50,13 @@ from recon.gaussians.ssim import ssim
 from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
-from recon.models.schedules import exp_decay_lr, fit_schedules, refit_schedules, set_lr
+from recon.models.schedules import (
+    exp_decay_lr,
+    fit_schedules,
+    refit_schedules,
+    schedule_state,
+    set_lr,
+)
 from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
@@ -548,6 +554,7 @@ class GaussianModel(Model):
         state = {
             "optimizer": self.optimizer.state_dict(),
             "densify": {k: v.clone() for k, v in self.densify_state.items()},
+            "schedules": schedule_state(self.config, SCHEDULE_FRACTIONS),
         }
         if self.pose_optimizer is not None:
             state["pose_optimizer"] = self.pose_optimizer.state_dict()
@@ -564,6 +571,9 @@ class GaussianModel(Model):
         self.densify_state = {
             k: v.to(self.params["means"].device) for k, v in state["densify"].items()
         }
+        if "schedules" in state:  # as re-planned (`replan`) by the step it was saved at
+            self.config = replace(self.config, **state["schedules"])
+            self.strategy = densify_strategy(self.config)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Resize the Gaussian tensors to the saved count first (densification changes it), then

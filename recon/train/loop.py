@@ -42,6 +42,7 @@ class LoopState:
     eval_total_s: float = 0.0  # how long all held-out evaluations took
     eval_cost_wall: float = 0.0  # wall_s when eval_cost_s was measured
     schedule_steps: int = 0  # the run length the model's schedules were last re-planned to
+    # (for the log and run.json; the model's checkpointed training state keeps the schedules)
 
 
 @torch.no_grad()
@@ -177,7 +178,7 @@ def run_loop(
 
 def _replan(model: Model, projected: int, st: LoopState, log: Callable[[dict], None]) -> None:
     """Have the model fit its step schedules into a run of `projected` steps (`recon.train.
-    replan`); a change is kept in the loop state (checkpoints, resume) and logged."""
+    replan`); a change is noted in the loop state (for run.json) and logged."""
     followed = model.replan(projected, st.step)
     if followed:
         st.schedule_steps = followed

@@ -10,7 +10,7 @@ seconds and has the model lay its schedules out over the run that estimate gives
 longer than planned (`Model.replan`; a schedule that has ended stays ended). A 3DGS step
 slows as Gaussians are added, so each window's estimate is still a little long; the next
 windows shorten it further while densifying. A one-off slow window (lego's pruning when
-densification ends) made a run planned at 6,000 steps re-plan to 4,077 and then make 6,746,
+densification ends) made a run planned at 6,666 steps re-plan to 4,077 and then make 6,746,
 so later estimates lengthen the schedules back up to the plan.
 """
 

@@ -226,8 +226,6 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         model.load_state_dict(ck["model"])
         model.load_training_state(ck["training"])
         st = LoopState(**ck["loop"])
-        if st.schedule_steps:  # the schedules as the run had re-planned them (`train.replan`)
-            model.replan(st.schedule_steps, st.step)
         torch.set_rng_state(ck["rng"])
         _truncate_log(log_path, st.step)
         run_doc = {**json.loads(ws.run_json(run).read_text()), "status": "running"}
