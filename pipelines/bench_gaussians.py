@@ -127,7 +127,9 @@ def profile_steps(model: GaussianModel, data: TrainData, first: int, steps: int)
     }
 
 
-def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str]) -> dict:
+def bench_workspace(
+    workspace: str, warmup: int, steps: int, overrides: list[str], downscale: int = 1
+) -> dict:
     """Default (fast preset) training on a workspace's training views: `warmup` plain steps
     (densification on, so the count is what training really sees), then `profile_steps`."""
     from recon.train.config import build_config
@@ -136,7 +138,7 @@ def bench_workspace(workspace: str, warmup: int, steps: int, overrides: list[str
 
     ws = Workspace.open(workspace)
     scene = load_scene(ws)
-    data = load_train_data(ws, scene, "train")
+    data = load_train_data(ws, scene, "train", downscale=downscale)
     config = build_config(GaussiansConfig, PRESETS, "fast", overrides)
     model = GaussianModel(config, scene.info)
     t0 = time.perf_counter()
@@ -169,11 +171,16 @@ def main() -> None:
         default=[],
         help="--workspace: override a config field, KEY=VALUE (repeatable)",
     )
+    parser.add_argument(
+        "--downscale", type=int, default=1, help="--workspace: train at 1/K of the sfm size"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     numba.set_num_threads(args.threads)
     if args.workspace:
-        result = bench_workspace(args.workspace, args.warmup, args.steps, args.overrides)
+        result = bench_workspace(
+            args.workspace, args.warmup, args.steps, args.overrides, args.downscale
+        )
         print(json.dumps(result), flush=True)
         if args.out:
             with open(args.out, "w") as f:

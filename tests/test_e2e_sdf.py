@@ -41,7 +41,14 @@ def mesh_and_fscore(ws, run: str, *extra: str) -> tuple[dict, dict]:
             "mesh", "-w", str(ws), "--run", run, "--resolution", "96", "--json", *extra
         ).stdout
     )
-    ev = json.loads(recon_cli("eval", "-w", str(ws), "--run", run, "--no-lpips", "--json").stdout)
+    # geometry is what this test reads: one held-out view, no pictures (a young field renders
+    # ~160 samples a ray, so the images cost most of an evaluation)
+    ev = json.loads(
+        recon_cli(
+            "eval", "-w", str(ws), "--run", run, "--no-lpips", "--json", "--every", "1000",
+            "--no-pictures",
+        ).stdout
+    )  # fmt: skip
     return mesh, ev[run]["geometry"]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import sys
 
 import click
@@ -9,9 +10,31 @@ import click
 import recon
 from recon.cli.common import fail
 
+# command name -> (module under recon.cli, attribute): each command's module (and what it
+# imports: torch, trimesh, pycolmap) is loaded only when that command runs or help lists it.
+COMMANDS = {
+    "sfm": ("sfm_cmd", "sfm"),
+    "train": ("train_cmd", "command"),
+    "render": ("render_cmd", "command"),
+    "mesh": ("mesh_cmd", "command"),
+    "eval": ("eval_cmd", "command"),
+    "export": ("export_cmd", "command"),
+    "status": ("status_cmd", "status"),
+}
+
 
 class ReconGroup(click.Group):
-    """Turns every exception into one clear line on stderr and a non-zero exit."""
+    """Loads each subcommand on demand (`COMMANDS`) and turns every exception into one clear
+    line on stderr and a non-zero exit."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module, attr = COMMANDS[name]
+        return getattr(importlib.import_module(f"recon.cli.{module}"), attr)
 
     def invoke(self, ctx: click.Context):
         try:
@@ -38,24 +61,6 @@ def cli(ctx: click.Context, verbose: bool) -> None:
     """
     ctx.ensure_object(dict)
     ctx.obj["verbose"] = verbose
-
-
-def _register_commands() -> None:
-    from recon.cli import eval_cmd, export_cmd, mesh_cmd, render_cmd, sfm_cmd, status_cmd, train_cmd
-
-    for command in (
-        sfm_cmd.sfm,
-        train_cmd.command,
-        render_cmd.command,
-        mesh_cmd.command,
-        eval_cmd.command,
-        export_cmd.command,
-        status_cmd.status,
-    ):
-        cli.add_command(command)
-
-
-_register_commands()
 
 
 def main() -> None:

@@ -7,19 +7,26 @@ scipy's cKDTree. Meshes are compared through points sampled uniformly by area.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
-from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    import trimesh
 
 
 def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """n points uniformly by area on a mesh -> points (n, 3), unit face normals (n, 3)."""
+    import trimesh  # here, not at the top: image-only callers (train, render) skip its 0.6 s import
+
     points, face_index = trimesh.sample.sample_surface(mesh, n, seed=seed)
     return np.asarray(points, np.float64), np.asarray(mesh.face_normals[face_index], np.float64)
 
 
 def nearest_neighbors(query: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For each query point (N, 3): distance (N,) to and index (N,) of its nearest reference."""
+    from scipy.spatial import cKDTree
+
     distance, index = cKDTree(reference).query(query, k=1, workers=-1)
     return distance, index
 
@@ -86,6 +93,8 @@ def point_cloud_metrics(
 def surface_points(geometry, n_samples: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
     """Points (N, 3) and normals (N, 3) or None from a mesh (sampled by area), a point cloud
     or an (N, 3) array (used as given)."""
+    import trimesh
+
     if isinstance(geometry, trimesh.Trimesh) and len(geometry.faces) > 0:
         return sample_surface(geometry, n_samples, seed=seed)
     if isinstance(geometry, (trimesh.Trimesh, trimesh.PointCloud)):
