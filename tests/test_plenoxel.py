@@ -227,6 +227,18 @@ def test_one_pass_render_matches_the_sample_path_after_more_training():
             assert hit.sum() > 20
 
 
+def test_lean_preset_stores_degree_one_sh_and_renders_like_the_sample_path():
+    from recon.models.registry import method_spec
+
+    lean = method_spec("plenoxel").presets["lean"]
+    model, data = trained_sphere(steps=60, **lean)
+    assert model.grid.data["sh"].shape[1] == 3 * 4  # 4 bases of degree <= 1 per channel
+    fast = model.render(data.cameras[0])
+    slow = render_image(model._render_chunk, data.cameras[0].to("cpu"), model.cfg.chunk)
+    assert (fast["rgb"] - slow["rgb"]).abs().max() < 1e-4
+    assert (fast["acc"] > 0.1).sum() > 20
+
+
 def test_upsampling_keeps_only_what_the_training_rays_see():
     """With upsample_prune_unseen the finer lattice (from step 60) holds far fewer rows than
     without, and the two models trained the same way render the training views alike."""

@@ -11,7 +11,10 @@ from recon.options import opt
 @dataclass(frozen=True)
 class TrainConfig:
     method: str  # nerf | ngp | plenoxel | 3dgs
-    preset: str = opt("fast", "fast: sized for a CPU; paper: the paper's settings (GPU-sized)")
+    preset: str = opt(
+        "fast",
+        "fast: sized for a CPU; paper: the paper's settings (GPU-sized); plenoxel also has lean (SH degree 1, less memory)",
+    )
     steps: int = opt(0, "stop after this many steps (0 = no step limit)")
     time_budget_s: float = opt(
         0.0,
