@@ -155,6 +155,39 @@ def test_learns_sphere_and_renders():
     hit = depths[0] > 0
     assert (out["depth"][hit] - depths[0][hit]).abs().median() < 0.25
     assert out["acc"][hit].mean() > 0.8 and out["acc"][~hit].mean() < 0.15
+    # early ray termination (the default render) against evaluating every sample
+    model.cfg = NeRFConfig(**{**model.cfg.__dict__, "eps_transmittance": 0.0})
+    every = model.render(data.cameras[0])
+    for k in ("rgb", "acc"):
+        assert (every[k] - out[k]).abs().max() < 1e-3, k
+
+
+def test_renders_stop_evaluating_rays_behind_an_opaque_slab():
+    """Both networks see an opaque slab at t = 2.5 (optical depth 100): samples behind it are
+    not evaluated, and the image is the one every sample gives (within the skipped weight)."""
+    _, info, _ = sphere_scene(2, 8)
+    model = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "occupancy_res": 0}), info)
+    evaluated = []
+
+    def slab(x_enc):
+        evaluated.append(x_enc.shape[0])
+        sigma = 1000.0 * ((x_enc[:, 2].float() + 0.5).abs() < 0.05).float()
+        return sigma, torch.ones(x_enc.shape[0], SMALL.width, dtype=x_enc.dtype)
+
+    model.coarse.geometry = model.fine.geometry = slab
+    o = torch.tensor([[0.0, 0.0, -3.0], [0.1, 0.0, -3.0]]).repeat(32, 1)
+    d = torch.tensor([[0.0, 0.0, 1.0]]).repeat(64, 1)
+    outs = {}
+    for eps in (0.0, 1e-4):
+        model.cfg = NeRFConfig(**{**model.cfg.__dict__, "eps_transmittance": eps})
+        evaluated.clear()
+        with torch.no_grad():
+            outs[eps] = model._render_rays(o, d, jitter=False, terminate=eps > 0)[1]
+        outs[eps]["samples"] = sum(evaluated)
+    assert outs[1e-4]["samples"] < 0.8 * outs[0.0]["samples"], outs
+    assert (outs[0.0]["acc"] > 0.99).all()
+    for k in ("rgb", "acc", "depth"):
+        assert (outs[1e-4][k] - outs[0.0][k]).abs().max() < 1e-3, k
 
 
 def test_fine_samples_concentrate_where_coarse_weight_is():
@@ -242,8 +275,10 @@ def test_occupancy_shrinks_ranges_to_occupied_cells_and_skips_empty_rays():
     box_min, box_max = ray_bounds(info, o, d)
     assert (t_min >= box_min).all() and (t_max <= box_max).all()
     seen = []
-    original = model._render_net
-    model._render_net = lambda net, *a: seen.append(a[0].shape[0]) or original(net, *a)
+    original = model._render_terminated  # a render's passes (early ray termination)
+    model._render_terminated = lambda net, *a, **k: (
+        seen.append(a[0].shape[0]) or original(net, *a, **k)
+    )
     out = model.render(data.cameras[0])
     assert seen and sum(seen) == 2 * int((t_max > t_min).sum())  # coarse + fine, hit rays only
     torch.testing.assert_close(
