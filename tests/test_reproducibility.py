@@ -62,7 +62,9 @@ def _train_and_eval(ws, method: str, run: str) -> dict:
         env={"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"},
     )
     return json.loads(
-        recon_cli("eval", "-w", str(ws), "--run", run, "--json", "--no-lpips").stdout
+        recon_cli(
+            "eval", "-w", str(ws), "--run", run, "--json", "--no-lpips", "--no-pictures"
+        ).stdout
     )[run]
 
 
