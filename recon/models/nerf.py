@@ -302,7 +302,7 @@ class NeRFModel(Model):
         R, S = t0.shape
         x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]  # (R, S, 3)
         d_enc = positional_encoding(d, self.cfg.dir_bands).to(self.dtype)
-        sigma, rgb = t0.new_zeros(R, S), t0.new_zeros(R, S, 3)
+        sigma, rgb, delta = t0.new_zeros(R, S), t0.new_zeros(R, S, 3), t1 - t0
         depth = t0.new_zeros(R)  # optical depth sum_j sigma_j delta_j over the evaluated samples
         min_depth = -math.log(self.cfg.eps_transmittance)
         for s0 in range(0, S, TERMINATION_GROUP):
@@ -322,7 +322,7 @@ class NeRFModel(Model):
                     sig = net.geometry(x_enc)[0]
             sig = sig[: A * G].view(A, G)
             sigma[alive, s0:s1] = sig
-            depth[alive] += (sig * (t1[alive, s0:s1] - t0[alive, s0:s1])).sum(-1)
+            depth[alive] += (sig * delta[alive, s0:s1]).sum(-1)
         return volume_render(sigma, rgb, t0, t1, background=self.background_colour(d))
 
     def _render_hits(

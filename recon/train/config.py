@@ -13,7 +13,8 @@ class TrainConfig:
     method: str  # nerf | ngp | plenoxel | 3dgs
     preset: str = opt(
         "fast",
-        "fast: sized for a CPU; paper: the paper's settings (GPU-sized); plenoxel also has lean (SH degree 1, less memory)",
+        "fast: sized for a CPU; paper: the paper's settings (GPU-sized); a method may have more "
+        "(plenoxel: lean), listed by --list-options",
     )
     steps: int = opt(0, "stop after this many steps (0 = no step limit)")
     time_budget_s: float = opt(
