@@ -254,7 +254,7 @@ def test_alpha_bounds_drop_only_tiles_no_pixel_of_the_splat_reaches(seed):
         starts, ids = bin_gaussians(bounds, depths, W, H, TILE)
         images.append(
             rasterize._RasterizeFeatures.apply(
-                means2d, conics, opacities, features, starts, ids, W, H, TILE
+                means2d, conics, opacities, features, starts, ids, W, H, TILE, None
             )
         )
     assert all(torch.equal(a, b) for a, b in zip(*images))
@@ -310,3 +310,63 @@ def test_radix_argsort_equals_torch_stable_argsort(dtype):
     values[:5] = torch.tensor([0.0, -0.5, float("inf"), -float("inf"), 1e-30], dtype=dtype)
     expected = torch.argsort(values, stable=True)
     assert torch.equal(torch.from_numpy(stable_argsort(values.numpy())), expected)
+
+
+def brute_force_abs_grad(splats, W, H, g_img, g_T):
+    """sum_p |dL_p/dmu'| per splat, L_p = <g_img[p], F(p)> + g_T[p] T(p): one autograd pass of
+    the dense reference per pixel."""
+    means2d, conics, opacities, features, radii, depths = splats
+    leaf = means2d.clone().requires_grad_()
+    image, T = rasterize_features_reference(leaf, conics, opacities, features, radii, depths, W, H)
+    total = torch.zeros_like(means2d)
+    for py in range(H):
+        for px in range(W):
+            loss_p = (image[py, px] * g_img[py, px]).sum() + T[py, px] * g_T[py, px]
+            (g,) = torch.autograd.grad(loss_p, leaf, retain_graph=True)
+            total += g.abs()
+    return total
+
+
+@pytest.mark.parametrize("rasterizer", [rasterize_features, rasterize_features_torch])
+def test_abs_grad_matches_per_pixel_brute_force(rasterizer):
+    W, H = 14, 11
+    splats = random_splats(12, W, H, seed=7, opacity=(0.3, 0.95), sigma=2.5)
+    means2d, conics, opacities, features, radii, depths = splats
+    gen = torch.Generator().manual_seed(8)
+    g_img = torch.randn(H, W, 3, generator=gen, dtype=F64)
+    g_T = torch.randn(H, W, generator=gen, dtype=F64)
+    leaf = means2d.clone().requires_grad_()
+    sink = torch.zeros_like(means2d)
+    image, T = rasterizer(leaf, conics, opacities, features, radii, depths, W, H, sink)
+    ((image * g_img).sum() + (T * g_T).sum()).backward()
+    expected = brute_force_abs_grad(splats, W, H, g_img, g_T)
+    assert expected.abs().max() > 0.1
+    assert torch.allclose(sink, expected, atol=1e-9, rtol=1e-9), (sink - expected).abs().max()
+    # the triangle inequality: |sum_p g_p| <= sum_p |g_p|, equality only without cancellation
+    assert (leaf.grad.abs() <= sink + 1e-12).all()
+
+
+def test_abs_grad_sees_a_symmetric_error_the_mean_gradient_cancels():
+    """One round splat centred on a pixel centre, every pixel's error the same: the left and
+    right halves pull the mean in opposite directions, so dL/dmu' = 0 while sum |.| > 0 (the
+    case AbsGS densifies and the mean-gradient rule misses; Ye et al. 2024, Fig. 2)."""
+    W = H = 9
+    means2d = torch.tensor([[4.5, 4.5]], dtype=F64, requires_grad=True)
+    conics = torch.tensor([[0.5, 0.0, 0.5]], dtype=F64)
+    opacities = torch.tensor([0.8], dtype=F64)
+    features = torch.tensor([[0.3]], dtype=F64)
+    sink = torch.zeros(1, 2, dtype=F64)
+    image, _ = rasterize_features(
+        means2d,
+        conics,
+        opacities,
+        features,
+        torch.tensor([4.0]),
+        torch.ones(1, dtype=F64),
+        W,
+        H,
+        sink,
+    )
+    image.sum().backward()
+    assert means2d.grad.abs().max() < 1e-12
+    assert (sink > 1e-3).all()

@@ -7,6 +7,12 @@ radius. Every `interval` steps inside [start, stop), Gaussians whose mean gradie
 two children sampled from N(mu, Sigma), scales / 1.6); then Gaussians with opacity < 0.005 or,
 after the first opacity reset, too large on screen or in the world are pruned. Every
 `reset_interval` steps opacities are clamped to <= 0.01.
+
+With `abs_grad` the accumulated quantity is the norm of the per-splat sums of the absolute
+per-pixel gradients, sum_p |dL_p/dmu'| componentwise (Ye et al. 2024, "AbsGS", eq. 6): a
+Gaussian that covers both sides of an edge or a texture gets gradients of opposite signs from
+its pixels, which cancel in dL/dmu' and leave it large and blurry; their absolute values do not
+cancel. The sum of absolute values is larger, hence the higher threshold (gsplat: 0.0008).
 """
 
 from __future__ import annotations
@@ -37,6 +43,9 @@ class DensifyStrategy:
     reset_interval: int = opt(3000, "opacity reset every this many steps")
     max_gaussians: int = opt(3_000_000, "densification never grows the count beyond this")
     clone_opacity_correction: bool = opt(False, "clone and original get 1 - sqrt(1 - o) each")
+    abs_grad: bool = opt(
+        False, "accumulate sum_p |dL_p/dmu'| (AbsGS) instead of |dL/dmu'|: ~4x the threshold"
+    )
 
 
 def init_state(n: int, device=None) -> dict[str, Tensor]:

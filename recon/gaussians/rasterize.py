@@ -41,7 +41,7 @@ if "NUMBA_THREADING_LAYER" not in os.environ:
 
 RECUR_MAX_A = 4.0  # conic x-curvatures up to this use the exp recurrence (no overflow risk)
 FORWARD_CHUNKS = 64  # parallel work items of the forward, each a strided set of tiles
-GRAD_COLUMNS = 6  # d mean2d (2), d conic (3), d opacity (1), then d features (D)
+GRAD_COLUMNS = 8  # d mean2d (2), d conic (3), d opacity (1), |d mean2d| (2), then d features (D)
 
 
 @numba.njit(cache=True)
@@ -265,7 +265,8 @@ def _backward_splat(
 ):
     """Gradients of splat g (position i in its tile's list) summed over the tile's pixels that
     it reached, walking back to front (updates T to T_i and S to S_i as it goes).
-    Returns dL/d(mx, my, A, B, C, o); dL/df goes to g_f."""
+    Returns dL/d(mx, my, A, B, C, o) and sum over pixels of |dL_p/dmx|, |dL_p/dmy| (the
+    per-pixel mean gradients' absolute values, Ye et al. 2024, eq. 6); dL/df goes to g_f."""
     alpha_max, alpha_min, half, one = consts[0], consts[1], consts[3], consts[4]
     x0, y0, x1, y1 = box
     tw = x1 - x0
@@ -274,7 +275,7 @@ def _backward_splat(
     ellipse = _ellipse(A, B, C, o, alpha_min)
     decay = _row_decay(ellipse, A)
     py0, py1 = _row_range(my, ellipse, y0, y1)
-    g_mx = g_my = g_A = g_B = g_C = g_o = 0.0
+    g_mx = g_my = g_A = g_B = g_C = g_o = abs_mx = abs_my = 0.0
     g_f[:] = 0.0
     for py in range(py0, py1):
         dy = my - centers[py]
@@ -303,12 +304,16 @@ def _backward_splat(
             if o_gauss <= alpha_max:  # the 0.99 clamp passes no gradient
                 g_o += g_alpha * gauss
                 g_pow = g_alpha * o_gauss
-                g_mx -= g_pow * (A * dx + B * dy)
-                g_my -= g_pow * (B * dx + C * dy)
+                p_mx = g_pow * (A * dx + B * dy)
+                p_my = g_pow * (B * dx + C * dy)
+                g_mx -= p_mx
+                g_my -= p_my
+                abs_mx += abs(p_mx)
+                abs_my += abs(p_my)
                 g_A -= g_pow * half * dx * dx
                 g_B -= g_pow * dx * dy
                 g_C -= g_pow * half * dy * dy
-    return g_mx, g_my, g_A, g_B, g_C, g_o
+    return g_mx, g_my, g_A, g_B, g_C, g_o, abs_mx, abs_my
 
 
 @numba.njit(cache=True)
@@ -436,7 +441,17 @@ class _RasterizeFeatures(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, features, tile_start, gauss_ids, width, height, tile
+        ctx,
+        means2d,
+        conics,
+        opacities,
+        features,
+        tile_start,
+        gauss_ids,
+        width,
+        height,
+        tile,
+        abs_grad,
     ):
         dt = features.dtype
         np_dt = _numpy(features, dt).dtype
@@ -459,7 +474,7 @@ class _RasterizeFeatures(torch.autograd.Function):
         )
         with record_function("3dgs.raster_forward"):
             image, T, last = _forward_kernel(*args)
-        ctx.args, ctx.fwd = args, (T, last)
+        ctx.args, ctx.fwd, ctx.abs_grad = args, (T, last), abs_grad
         ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype)
         return torch.from_numpy(image), torch.from_numpy(T)
 
@@ -475,12 +490,15 @@ class _RasterizeFeatures(torch.autograd.Function):
                 numba.get_num_threads(),
             )
             grads = torch.from_numpy(buffers).sum(0)
+        if ctx.abs_grad is not None:
+            ctx.abs_grad += grads[:, 6:8].to(ctx.abs_grad)
         d_means, d_conics, d_opac = ctx.in_dtypes
         return (
             grads[:, 0:2].to(d_means),
             grads[:, 2:5].to(d_conics),
             grads[:, 5].to(d_opac),
             grads[:, GRAD_COLUMNS:],
+            None,
             None,
             None,
             None,
@@ -498,23 +516,25 @@ def rasterize_features(
     depths: Tensor,
     width: int,
     height: int,
+    abs_grad: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """F(p) = sum_i T_i alpha_i f_i and T_final(p) over depth-sorted splats, differentiable.
 
     means2d (G, 2), conics (G, 3), opacities (G,), features (G, D), radii (G,) (0 = culled),
     depths (G,) -> image (H, W, D), transmittance (H, W). The numba kernels run on CPU tensors;
     other devices use the vectorised torch version `rasterize_torch.rasterize_features_torch`.
-    """
+    `abs_grad` (G, 2), if given, receives in the backward sum_p |dL_p/dmu'| per splat (the
+    absolute per-pixel mean gradients that AbsGS densifies by; Ye et al. 2024, Sec. 4.2)."""
     if means2d.device.type != "cpu":
         from recon.gaussians.rasterize_torch import rasterize_features_torch
 
         return rasterize_features_torch(
-            means2d, conics, opacities, features, radii, depths, width, height
+            means2d, conics, opacities, features, radii, depths, width, height, abs_grad
         )
     with record_function("3dgs.bin"):
         tile = tile_size(width, height)
         bounds = tile_bounds(means2d, radii, width, height, tile, conics, opacities)
         tile_start, gauss_ids = bin_gaussians(bounds, depths, width, height, tile)
     return _RasterizeFeatures.apply(
-        means2d, conics, opacities, features, tile_start, gauss_ids, width, height, tile
+        means2d, conics, opacities, features, tile_start, gauss_ids, width, height, tile, abs_grad
     )

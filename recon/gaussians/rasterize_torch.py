@@ -31,8 +31,21 @@ def _pixel_grid(
     return px.to(dtype) + 0.5, py.to(dtype) + 0.5, (px < width) & (py < height)
 
 
-def _alphas(means2d, conics, opacities, gid, px, py, on_image) -> Tensor:
+def _abs_sum_into(sink: Tensor, column: int, gid: Tensor):
+    """A gradient hook on an (N, tile^2) per-pixel offset: adds sum_p |grad| to sink[gid, column]."""
+
+    def hook(grad: Tensor) -> None:
+        sink[:, column].index_add_(0, gid, grad.abs().sum(1).to(sink))
+
+    return hook
+
+
+def _alphas(means2d, conics, opacities, gid, px, py, on_image, abs_grad=None) -> Tensor:
     dx, dy = means2d[gid, 0:1] - px, means2d[gid, 1:2] - py
+    if abs_grad is not None and dx.requires_grad:
+        # dL/d dx[n, p] is pixel p's share of dL/dmx of intersection n's splat
+        dx.register_hook(_abs_sum_into(abs_grad, 0, gid))
+        dy.register_hook(_abs_sum_into(abs_grad, 1, gid))
     a, b, c = conics[gid, 0:1], conics[gid, 1:2], conics[gid, 2:3]
     power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
     alpha = torch.clamp(opacities[gid, None] * torch.exp(power), max=ALPHA_MAX)
@@ -49,6 +62,7 @@ def rasterize_features_torch(
     depths: Tensor,
     width: int,
     height: int,
+    abs_grad: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Same arguments and outputs as `rasterize.rasterize_features`: image (H, W, D),
     transmittance (H, W)."""
@@ -59,7 +73,7 @@ def rasterize_features_torch(
     starts, gid = bin_gaussians_sorted(bounds, depths, width, height, tile)
     tile_ids = torch.repeat_interleave(torch.arange(n_tiles, device=gid.device), starts.diff())
     px, py, on_image = _pixel_grid(tile_ids, width, height, tile, means2d.dtype)
-    alpha = _alphas(means2d, conics, opacities, gid, px, py, on_image)
+    alpha = _alphas(means2d, conics, opacities, gid, px, py, on_image, abs_grad)
     # each of a tile's pixels composites the tile's depth-sorted list: packed along dim 0
     weights, alpha = alpha_compositing(alpha, tile_ids, t_min=T_MIN)
     log1m = torch.log1p(-alpha.double())

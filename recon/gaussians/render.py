@@ -90,11 +90,14 @@ def project_splats_torch(
     )
 
 
-def composite_rgb(splats: ProjectedSplats, background: Tensor) -> tuple[Tensor, Tensor]:
-    """rgb = sum_i T_i alpha_i c_i + T_final bg -> rgb (H, W, 3), acc = 1 - T_final (H, W)."""
+def composite_rgb(
+    splats: ProjectedSplats, background: Tensor, abs_grad: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """rgb = sum_i T_i alpha_i c_i + T_final bg -> rgb (H, W, 3), acc = 1 - T_final (H, W).
+    `abs_grad` (G, 2): see `rasterize_features`."""
     s = splats
     image, T = rasterize_features(
-        s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths, s.width, s.height
+        s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths, s.width, s.height, abs_grad
     )
     return image + T[..., None] * background.to(image), 1 - T
 

@@ -130,6 +130,10 @@ class GaussiansConfig:
         _DENSIFY.clone_opacity_correction,
         "a clone and its original share the opacity (1 - sqrt(1 - o))",
     )
+    densify_abs_grad: bool = opt(
+        _DENSIFY.abs_grad,
+        "densify by the absolute per-pixel 2D-mean gradients (AbsGS); raise the threshold ~4x",
+    )
     schedule_steps: int = opt(
         0,
         "the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)",
@@ -261,6 +265,7 @@ def densify_strategy(config: GaussiansConfig) -> densify.DensifyStrategy:
         reset_interval=config.opacity_reset_interval,
         max_gaussians=config.max_gaussians,
         clone_opacity_correction=config.clone_opacity_correction,
+        abs_grad=config.densify_abs_grad,
     )
 
 
@@ -368,8 +373,9 @@ class GaussianModel(Model):
                 c.near_plane,
             )
         splats.means2d.retain_grad()
+        abs_grad = torch.zeros_like(splats.means2d) if self.strategy.abs_grad else None
         with record_function("3dgs.rasterize"):
-            rgb, _ = composite_rgb(splats, self.background)
+            rgb, _ = composite_rgb(splats, self.background, abs_grad)
         rgb = self._corrected(rgb, view, data.cameras)
         target = level.images[view]
         with record_function("3dgs.loss"):
@@ -382,7 +388,7 @@ class GaussianModel(Model):
             self._pose_step(step)
             self._appearance_step()
         with record_function("3dgs.densify"):
-            self._densify(splats, step, extent)
+            self._densify(splats, abs_grad, step, extent)
             # only where densification ran (not in a run too short to densify)
             ending = step + 1 == self.strategy.stop > self.strategy.start
             if ending and self.prune_fraction > 0:
@@ -522,11 +528,12 @@ class GaussianModel(Model):
         keep_rows(self.params, self.optimizer, ~drop.to(self.params["means"].device))
         self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
 
-    def _densify(self, splats: ProjectedSplats, step: int, extent: float) -> None:
+    def _densify(
+        self, splats: ProjectedSplats, abs_grad: Tensor | None, step: int, extent: float
+    ) -> None:
         if step + 1 < self.strategy.stop:
-            densify.accumulate(
-                self.densify_state, splats.means2d.grad, splats.radii, splats.width, splats.height
-            )
+            grad = splats.means2d.grad if abs_grad is None else abs_grad
+            densify.accumulate(self.densify_state, grad, splats.radii, splats.width, splats.height)
         gen = torch.Generator(device=self.params["means"].device)
         gen.manual_seed(self.config.seed + 7919 * step)
         self.densify_state = densify.post_step(
