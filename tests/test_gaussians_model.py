@@ -309,3 +309,25 @@ def test_appearance_auto_follows_the_kind_of_scene():
 
     with pytest.raises(ValueError, match="on, off or auto"):
         uses_appearance(config(appearance="yes"), scene)
+
+
+def test_abs_grad_densification_auto_threshold_and_accumulators():
+    """auto: absolute gradients (and their threshold) for unbounded captures only; one step's
+    accumulated absolute gradient bounds the mean-gradient rule's from above (triangle
+    inequality) and training with it densifies."""
+    scene, data = synthetic_scene(size=24)
+    unbounded = SceneInfo(scene.aabb, True, scene.background, 0.1, 6.0)
+    cfg = config(densify_abs_grad="auto", densify_abs_grad_threshold=0.0002)
+    assert not GaussianModel(cfg, scene).strategy.abs_grad
+    assert GaussianModel(cfg, scene).strategy.grad_threshold == cfg.densify_grad_threshold
+    assert GaussianModel(cfg, unbounded).strategy.abs_grad
+    assert GaussianModel(cfg, unbounded).strategy.grad_threshold == 0.0002
+    sums = {}
+    for mode in ("off", "on"):
+        model = GaussianModel(config(densify_abs_grad=mode), scene)
+        model.train_step(data, 0)
+        sums[mode] = model.densify_state["grad2d"]
+    assert (sums["on"] >= sums["off"] - 1e-9).all() and (sums["on"] > sums["off"] + 1e-6).any()
+    model = GaussianModel(config(densify_abs_grad="on", densify_abs_grad_threshold=0.0002), scene)
+    counts = {model.train_step(data, step)["num_gaussians"] for step in range(45)}
+    assert len(counts) > 1

@@ -130,9 +130,12 @@ class GaussiansConfig:
         _DENSIFY.clone_opacity_correction,
         "a clone and its original share the opacity (1 - sqrt(1 - o))",
     )
-    densify_abs_grad: bool = opt(
-        _DENSIFY.abs_grad,
-        "densify by the absolute per-pixel 2D-mean gradients (AbsGS); raise the threshold ~4x",
+    densify_abs_grad: str = opt(
+        "off",
+        "densify by the absolute per-pixel 2D-mean gradients (AbsGS): on | off | auto (on for unbounded captures)",
+    )
+    densify_abs_grad_threshold: float = opt(
+        0.0006, "the densify threshold when densifying by absolute gradients"
     )
     schedule_steps: int = opt(
         0,
@@ -189,6 +192,9 @@ PRESETS = {
         # and lost them again to larger Gaussians (same steps, 32.48 vs 32.52 dB without;
         # bench/results/3dgs_c2f_ab.md)
         "appearance": "auto",
+        # AbsGS densification on real captures only: fox-real 10 min +0.11 dB, LPIPS 0.115
+        # against 0.120; lego-200 -0.15 dB (bench/results/3dgs_absgrad.md)
+        "densify_abs_grad": "auto",
     },
 }
 
@@ -252,9 +258,19 @@ def view_for_step(step: int, n_views: int, seed: int) -> int:
     return int(torch.randperm(n_views, generator=gen)[step % n_views])
 
 
-def densify_strategy(config: GaussiansConfig) -> densify.DensifyStrategy:
+def uses_abs_grad(config: GaussiansConfig, unbounded: bool) -> bool:
+    """on | off, or auto: on for unbounded captures. At 10 min (bench/results/3dgs_absgrad.md)
+    fox-real gains 0.11 dB and LPIPS 0.115 against 0.120 (threshold 0.0006; 0.0004 grew 30 %
+    more Gaussians, made fewer steps and lost PSNR), while lego-200 loses 0.15 dB."""
+    return on_off_auto(config.densify_abs_grad, "densify_abs_grad", unbounded)
+
+
+def densify_strategy(config: GaussiansConfig, unbounded: bool) -> densify.DensifyStrategy:
+    abs_grad = uses_abs_grad(config, unbounded)
     return densify.DensifyStrategy(
-        grad_threshold=config.densify_grad_threshold,
+        grad_threshold=(
+            config.densify_abs_grad_threshold if abs_grad else config.densify_grad_threshold
+        ),
         dense_fraction=config.densify_dense_fraction,
         prune_opacity=config.prune_opacity,
         prune_screen_fraction=config.prune_screen_fraction,
@@ -265,7 +281,7 @@ def densify_strategy(config: GaussiansConfig) -> densify.DensifyStrategy:
         reset_interval=config.opacity_reset_interval,
         max_gaussians=config.max_gaussians,
         clone_opacity_correction=config.clone_opacity_correction,
-        abs_grad=config.densify_abs_grad,
+        abs_grad=abs_grad,
     )
 
 
@@ -279,7 +295,7 @@ class GaussianModel(Model):
         super().__init__()
         self.config = config = fit_schedules(config, SCHEDULE_FRACTIONS)
         self._planned = config  # as fitted to the planned run (`replan` starts from it)
-        self.strategy = densify_strategy(config)
+        self.strategy = densify_strategy(config, bool(scene.unbounded))
         self.register_buffer("background", scene.background.float().clone())
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
@@ -408,7 +424,7 @@ class GaussianModel(Model):
         if config == self.config:
             return 0
         self.config = config
-        self.strategy = densify_strategy(config)
+        self.strategy = densify_strategy(config, self._unbounded)
         return config.schedule_steps
 
     def _train_camera(self, data: TrainData, view: int, step: int) -> Cameras:
@@ -580,7 +596,7 @@ class GaussianModel(Model):
         }
         if "schedules" in state:  # as re-planned (`replan`) by the step it was saved at
             self.config = replace(self.config, **state["schedules"])
-            self.strategy = densify_strategy(self.config)
+            self.strategy = densify_strategy(self.config, self._unbounded)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Resize the Gaussian tensors to the saved count first (densification changes it), then
