@@ -90,6 +90,20 @@ def gauge_basis(cam_from_world: Tensor, pivots: Tensor) -> Tensor:
     return U[:, S > 1e-9 * S[0]]
 
 
+def correction_pixels(twists: Tensor, pivots: Tensor, focal: Tensor) -> Tensor:
+    """About how far each correction moves the image of the scene, in pixels: f max(|phi|,
+    |o' - o| / d) with f the focal length (C,) in pixels and d the pivot depth (the scene
+    centre's; the turn alone where d = 0). A turn about the pivot moves the image edge by
+    ~f |phi|; a shift of the centre moves the scene centre's image by ~f |o' - o| / d.
+    Example: f = 278, phi = 0.1 deg about a pivot at d = 4 -> 278 * 0.001745 = 0.485 px.
+    (C, 6), (C,), (C,) -> (C,)."""
+    degrees, shift = correction_sizes(twists, pivots)
+    turn = torch.deg2rad(degrees)
+    d = pivots.double()
+    move = torch.where(d > 0, shift / torch.where(d > 0, d, 1.0), torch.zeros_like(shift))
+    return focal.double() * torch.maximum(turn, move)
+
+
 def correction_sizes(twists: Tensor, pivots: Tensor) -> tuple[Tensor, Tensor]:
     """How far each correction moves its camera: rotation angle |phi| in degrees and the
     distance its centre moves, |t of D| (= |o' - o|), in scene units.  -> (C,), (C,)."""
@@ -100,12 +114,14 @@ def correction_sizes(twists: Tensor, pivots: Tensor) -> tuple[Tensor, Tensor]:
 
 class PoseCorrection(nn.Module):
     """One zero-initialised twist per training camera, `twists` (C, 6), turning it about a
-    pivot at depth `pivots` (C,) (a buffer: saved with the model, never trained)."""
+    pivot at depth `pivots` (C,) (a buffer: saved with the model, never trained), and `frozen`
+    (C,) cameras held at their given poses (`snap`)."""
 
     def __init__(self, num_cameras: int):
         super().__init__()
         self.twists = nn.Parameter(torch.zeros(num_cameras, 6))
         self.register_buffer("pivots", torch.zeros(num_cameras))
+        self.register_buffer("frozen", torch.zeros(num_cameras, dtype=torch.bool))
         self.gauge = None  # (6C, r), set with the cameras (`set_gauge`)
 
     def reset(self, cameras: Cameras, center: Tensor) -> None:
@@ -113,6 +129,7 @@ class PoseCorrection(nn.Module):
         device = self.twists.device
         self.twists = nn.Parameter(torch.zeros(len(cameras), 6, device=device))
         self.pivots = pivot_depths(cameras, center).to(device=device, dtype=self.pivots.dtype)
+        self.frozen = torch.zeros(len(cameras), dtype=torch.bool, device=device)
         self.set_gauge(cameras)
 
     def set_gauge(self, cameras: Cameras) -> None:
@@ -124,10 +141,33 @@ class PoseCorrection(nn.Module):
         """Empty tensors for `num_cameras` cameras, to load a saved state into."""
         self.twists = nn.Parameter(self.twists.new_empty(num_cameras, 6))
         self.pivots = self.pivots.new_empty(num_cameras)
+        self.frozen = self.frozen.new_zeros(num_cameras)
+
+    @torch.no_grad()
+    def snap(self, focal: Tensor, min_pixels: float) -> int:
+        """Drop the corrections that move their camera's image by less than `min_pixels`
+        (`correction_pixels`, focal (C,) in pixels) and hold those cameras at their given
+        poses from now on (`hold_frozen`); returns how many cameras stay free. Against a
+        scene still being fitted, the photometric optimum of an exact camera lies a quarter
+        of a pixel to a pixel from the truth, so corrections that small are noise the scene
+        would otherwise learn to follow, not pose errors."""
+        small = correction_pixels(self.twists, self.pivots, focal.to(self.pivots)) < min_pixels
+        self.frozen |= small.to(self.frozen.device)
+        self.hold_frozen()
+        return int((~self.frozen).sum())
+
+    @torch.no_grad()
+    def hold_frozen(self) -> None:
+        """Zero the twists of the frozen cameras (after each optimizer step: Adam's momentum
+        would move them even without a gradient)."""
+        self.twists[self.frozen] = 0.0
 
     @torch.no_grad()
     def remove_gauge(self) -> None:
-        """Project the twists onto the complement of `gauge_basis` (after each optimizer step)."""
+        """Project the twists onto the complement of `gauge_basis` (after each optimizer step
+        while no camera is frozen: frozen cameras, held at their given poses, fix the gauge)."""
+        if bool(self.frozen.any()):
+            return
         x = self.twists.detach().double().cpu().reshape(-1)
         x = x - self.gauge @ (self.gauge.T @ x)
         self.twists.copy_(x.reshape(self.twists.shape))
@@ -138,7 +178,8 @@ class PoseCorrection(nn.Module):
         return correct_cameras(cameras[indices], self.twists[indices], self.pivots[indices])
 
     def stats(self) -> dict[str, float]:
-        """Mean and largest correction: rotation in degrees, centre shift in scene units."""
+        """Mean and largest correction: rotation in degrees, centre shift in scene units; and
+        how many cameras are held at their given poses (`snap`)."""
         if len(self.twists) == 0:
             return {}
         degrees, shift = correction_sizes(self.twists, self.pivots)
@@ -147,4 +188,5 @@ class PoseCorrection(nn.Module):
             "pose_rot_deg_max": float(degrees.max()),
             "pose_shift_mean": float(shift.mean()),
             "pose_shift_max": float(shift.max()),
+            "pose_frozen": float(self.frozen.sum()),
         }

@@ -164,6 +164,14 @@ class GaussiansConfig:
         0.000003, "pose lr at lr_decay_steps (log-linear decay over its second half)"
     )
     pose_refine_start: int = opt(0, "first step that moves the poses")
+    pose_snap_px: float = opt(
+        1.5,
+        "from pose_snap_start on, pose corrections moving the image less than this many pixels are dropped and those cameras keep their given poses (0 = never)",
+    )
+    pose_snap_start: int = opt(
+        -1,
+        "first step of the pose snaps, repeated every densify_interval (-1 = when densification ends)",
+    )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
 
@@ -409,6 +417,7 @@ class GaussianModel(Model):
             ending = step + 1 == self.strategy.stop > self.strategy.start
             if ending and self.prune_fraction > 0:
                 self._prune_by_contribution(data)
+            self._snap_poses(data, step)
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
         return {
@@ -443,7 +452,7 @@ class GaussianModel(Model):
             )
         elif self.pose_correction.gauge is None:  # loaded from a checkpoint
             self.pose_correction.set_gauge(data.cameras)
-        if step < self.config.pose_refine_start:
+        if step < self.config.pose_refine_start or bool(self.pose_correction.frozen[view]):
             return data.cameras[view]
         return self.pose_correction(data.cameras, [view])
 
@@ -471,7 +480,19 @@ class GaussianModel(Model):
             set_lr(self.pose_optimizer, pose_lr(self.config, step), "pose")
             self.pose_optimizer.step()
             self.pose_optimizer.zero_grad(set_to_none=True)
+            self.pose_correction.hold_frozen()
             self.pose_correction.remove_gauge()
+
+    def _snap_poses(self, data: TrainData, step: int) -> None:
+        """`PoseCorrection.snap` from pose_snap_start (by default the step densification ends)
+        on, every densify_interval steps: a camera whose correction has settled below
+        pose_snap_px is held at its given pose from then on."""
+        c = self.config
+        if self.pose_correction is None or c.pose_snap_px <= 0:
+            return
+        start = self.strategy.stop if c.pose_snap_start < 0 else c.pose_snap_start
+        if step + 1 >= start and (step + 1 - start) % max(c.densify_interval, 1) == 0:
+            self.pose_correction.snap(data.cameras.K[:, 0, 0], c.pose_snap_px)
 
     def train_cameras(self, cameras: Cameras) -> Cameras:
         """The training cameras (in training order) as the model learnt them: corrected by
@@ -609,6 +630,11 @@ class GaussianModel(Model):
         saved = state_dict.get("pose_correction.twists")
         if self.pose_correction is not None and saved is not None:  # sized at the first step
             self.pose_correction.resize(len(saved))
+            if "pose_correction.frozen" not in state_dict:  # saved before cameras could freeze
+                state_dict = {
+                    **state_dict,
+                    "pose_correction.frozen": torch.zeros(len(saved), dtype=torch.bool),
+                }
         saved = state_dict.get("appearance.deltas")
         if self.appearance is not None and saved is not None:
             self.appearance.resize(len(saved))
