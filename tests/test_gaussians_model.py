@@ -118,14 +118,15 @@ def test_training_fits_a_tiny_scene_and_densifies():
     assert int(model.active_sh_degree) == 3
 
 
-def test_resume_is_exact_across_densification():
-    scene, data = synthetic_scene(size=24)
-    cfg = config(densify_start=5, densify_interval=10)  # densifies at steps 10, 20, 30, 40
+def straight_and_resumed(cfg, scene, data, saved_at: int, steps: int):
+    """(a model trained `steps` steps straight, one saved after `saved_at` steps through
+    state_dict / training_state and trained on to `steps`, the saved model); asserts the two
+    runs end with the same Gaussians bit for bit."""
     straight = GaussianModel(cfg, scene)
-    for step in range(40):
+    for step in range(steps):
         straight.train_step(data, step)
     first = GaussianModel(cfg, scene)
-    for step in range(25):
+    for step in range(saved_at):
         first.train_step(data, step)
     buffer = io.BytesIO()
     torch.save({"model": first.state_dict(), "training": first.training_state()}, buffer)
@@ -134,11 +135,19 @@ def test_resume_is_exact_across_densification():
     resumed = GaussianModel(cfg, scene)
     resumed.load_state_dict(saved["model"])
     resumed.load_training_state(saved["training"])
-    assert resumed.num_gaussians == first.num_gaussians != 300
-    for step in range(25, 40):
+    assert resumed.num_gaussians == first.num_gaussians
+    for step in range(saved_at, steps):
         resumed.train_step(data, step)
     for name in straight.params:
         assert torch.equal(straight.params[name], resumed.params[name]), name
+    return straight, resumed, first
+
+
+def test_resume_is_exact_across_densification():
+    scene, data = synthetic_scene(size=24)
+    cfg = config(densify_start=5, densify_interval=10)  # densifies at steps 10, 20, 30, 40
+    _, _, first = straight_and_resumed(cfg, scene, data, saved_at=25, steps=40)
+    assert first.num_gaussians != 300
 
 
 def test_image_init_replaces_the_random_start_at_step_0():

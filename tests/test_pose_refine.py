@@ -2,7 +2,6 @@
 gradcheck), and in the 3dgs model: off changes nothing, held-out cameras are never corrected,
 exact resume, and on sample_data a perturbed training camera is pulled back to its true pose."""
 
-import io
 import math
 
 import pytest
@@ -26,7 +25,7 @@ from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
 from recon.workspace import Workspace
 from recon.workspace.scene import load_scene, load_train_data
 from tests.conftest import SAMPLE_DATA, recon_cli
-from tests.test_gaussians_model import config, ring, synthetic_scene
+from tests.test_gaussians_model import config, ring, straight_and_resumed, synthetic_scene
 
 F64 = torch.float64
 
@@ -220,23 +219,7 @@ def test_training_moves_the_poses_but_never_the_held_out_cameras():
 def test_resume_with_pose_refinement_is_exact():
     scene, data = synthetic_scene(size=24)
     cfg = config(densify_start=5, densify_interval=10, pose_refine=True, pose_refine_start=3)
-    straight = GaussianModel(cfg, scene)
-    for step in range(30):
-        straight.train_step(data, step)
-    first = GaussianModel(cfg, scene)
-    for step in range(17):
-        first.train_step(data, step)
-    buffer = io.BytesIO()
-    torch.save({"model": first.state_dict(), "training": first.training_state()}, buffer)
-    buffer.seek(0)
-    saved = torch.load(buffer, weights_only=True)
-    resumed = GaussianModel(cfg, scene)
-    resumed.load_state_dict(saved["model"])
-    resumed.load_training_state(saved["training"])
-    for step in range(17, 30):
-        resumed.train_step(data, step)
-    for name in straight.params:
-        assert torch.equal(straight.params[name], resumed.params[name]), name
+    straight, resumed, _ = straight_and_resumed(cfg, scene, data, saved_at=17, steps=30)
     assert straight.pose_correction.twists.any()
     assert torch.equal(straight.pose_correction.twists, resumed.pose_correction.twists)
     assert torch.equal(straight.pose_correction.pivots, resumed.pose_correction.pivots)
@@ -249,24 +232,8 @@ def test_resume_after_a_snap_keeps_the_frozen_cameras():
     cfg = config(
         densify_start=5, densify_interval=5, densify_stop=12, pose_refine=True, pose_snap_px=1e9
     )
-    straight = GaussianModel(cfg, scene)
-    for step in range(20):
-        straight.train_step(data, step)
-    first = GaussianModel(cfg, scene)
-    for step in range(15):
-        first.train_step(data, step)
+    _, resumed, first = straight_and_resumed(cfg, scene, data, saved_at=15, steps=20)
     assert first.pose_correction.frozen.all() and not first.pose_correction.twists.any()
-    buffer = io.BytesIO()
-    torch.save({"model": first.state_dict(), "training": first.training_state()}, buffer)
-    buffer.seek(0)
-    saved = torch.load(buffer, weights_only=True)
-    resumed = GaussianModel(cfg, scene)
-    resumed.load_state_dict(saved["model"])
-    resumed.load_training_state(saved["training"])
-    for step in range(15, 20):
-        resumed.train_step(data, step)
-    for name in straight.params:
-        assert torch.equal(straight.params[name], resumed.params[name]), name
     assert resumed.pose_correction.frozen.all() and not resumed.pose_correction.twists.any()
 
 
