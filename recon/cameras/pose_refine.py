@@ -27,7 +27,13 @@ of an orbit against squashing the scene in height). Left free, these drift and c
 away from the cameras that are not corrected (held-out views). On sample_data (35 views, one off
 by 1 deg, 800 steps) the common rotation of the other cameras was 0.13-0.15 deg with only the
 shared twists removed and 0.02-0.03 deg with both; in a variant with neither (lr 1e-3) the other
-cameras had drifted 0.29 deg on average by step 500, 0.27 deg of it a common pitch. C = cameras.
+cameras had drifted 0.29 deg on average by step 500, 0.27 deg of it a common pitch.
+
+What the loss can hold is still noisy: against a scene being fitted, an exact camera's
+photometric optimum lies a quarter of a pixel to a pixel from the truth. `snap` therefore drops
+corrections that move the image by less than a threshold in pixels (`correction_pixels`) and
+holds those cameras at their given poses from then on; once some are held they fix the gauge.
+C = cameras.
 """
 
 from __future__ import annotations

@@ -17,8 +17,16 @@ A camera gets one update per pass over the views and needs tens of them (alone a
 scene, r_023 took ~125 Adam steps at 3e-4 to reach 0.04 deg), so the pose lr only decays in the
 second half of lr_decay_steps: decayed from the start over a fitted 800-step run
 (schedule_steps 800), r_033 came back only 1.4x / 2.1x, 4.0x / 5.5x with the late decay.
-It is off by default: on lego-200, whose poses are exact, the cameras wander ~0.07 deg (a third
-of a pixel) and 5,400 steps end at 31.5 dB against 32.8 dB without; fox gains nothing either.
+Against a scene still being fitted, an exact camera's photometric optimum is a quarter of a
+pixel to a pixel away, so exact cameras wander and the scene follows them (lego-200, exact
+poses: 5,400 steps ended at 31.5 dB against 32.8 without). Snaps stop that: from
+POSE_SNAP_PASSES passes over the views on, every densify_interval steps, a camera whose
+correction moves its image less than pose_snap_px (1.5 px) is held at its given pose for the
+rest of the run, while a camera that is really off (1 deg: 3.4 px by then) keeps refining. With
+them lego-200 loses 0.11 dB at 5,000 steps and 0.33 dB at 3,000 (the drift before the first
+snap; 0.96 dB with a single snap at 3,500), and the perturbed camera above comes back 9x / 18x
+with the exact cameras exactly restored. It stays off by default: fox's sfm poses are already
+good to ~0.1 deg and refinement did not help there.
 """
 
 from __future__ import annotations
@@ -76,6 +84,14 @@ SCHEDULE_FRACTIONS = {
 
 
 _DENSIFY = densify.DensifyStrategy  # the densification defaults have one source: the strategy
+
+# Pose snaps start after this many passes over the training views (each camera has had as many
+# pose steps). Measured (bench/results/3dgs_pose_refine.md): a camera off by 1 deg on
+# sample_data moves its image by 3.4 px after 10 passes (1.25 px after 4, the exact cameras
+# <= 1.2 px); on lego-200 (exact poses, 5,000 steps) snaps from step 500 / 1,000 / 1,500 / 3,500
+# cost 0.05 / 0.11 / 0.35 / 0.77 dB against no refinement: the sooner the exact cameras are
+# held, the less the scene follows their drift.
+POSE_SNAP_PASSES = 10
 
 
 @dataclass(frozen=True)
@@ -170,7 +186,7 @@ class GaussiansConfig:
     )
     pose_snap_start: int = opt(
         -1,
-        "first step of the pose snaps, repeated every densify_interval (-1 = when densification ends)",
+        f"first step of the pose snaps, repeated every densify_interval (-1 = after {POSE_SNAP_PASSES} passes over the training views)",
     )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
@@ -484,13 +500,13 @@ class GaussianModel(Model):
             self.pose_correction.remove_gauge()
 
     def _snap_poses(self, data: TrainData, step: int) -> None:
-        """`PoseCorrection.snap` from pose_snap_start (by default the step densification ends)
-        on, every densify_interval steps: a camera whose correction has settled below
-        pose_snap_px is held at its given pose from then on."""
+        """`PoseCorrection.snap` from pose_snap_start (by default after POSE_SNAP_PASSES
+        passes over the training views) on, every densify_interval steps: a camera whose
+        correction is below pose_snap_px is held at its given pose from then on."""
         c = self.config
         if self.pose_correction is None or c.pose_snap_px <= 0:
             return
-        start = self.strategy.stop if c.pose_snap_start < 0 else c.pose_snap_start
+        start = POSE_SNAP_PASSES * len(data) if c.pose_snap_start < 0 else c.pose_snap_start
         if step + 1 >= start and (step + 1 - start) % max(c.densify_interval, 1) == 0:
             self.pose_correction.snap(data.cameras.K[:, 0, 0], c.pose_snap_px)
 
