@@ -4,8 +4,8 @@
 
 Runs `run_sfm` with the default config (flags override it), matches registered images to the
 reference frames of transforms.json by file name, aligns the camera centres with a Sim3
-(ATE) and removes the one common camera-frame rotation a different principal point causes
-(the reference refined it, we keep it at the image centre), then writes registered count,
+(ATE) and removes the one common camera-frame rotation a different principal point would
+cause (both the reference and recon refine it now), then writes registered count,
 median rotation / centre errors, time per phase and total wall time as JSON. The machine's
 load average is recorded too: other jobs sharing the cores stretch wall time, not CPU time.
 """

@@ -248,3 +248,67 @@ def test_global_mapper_on_fox_subset(tmp_path):
     errors = fox_accuracy(result.reconstruction)
     assert errors["median_rotation_error_deg"] < 0.5
     assert errors["median_center_error_pct"] < 1.0
+
+
+def synthetic_model(n_images: int, seed: int = 0):
+    """A reconstruction whose observations are exact projections through an OPENCV camera with
+    its principal point 10 px right of and 6 px below the centre (cx = 330, cy = 246 for
+    640 x 480) and k1 = 0.05, but which starts with the principal point at the centre and no
+    distortion: n_images cameras on a ring 4 units out, looking at 300 points in a unit ball."""
+    import pycolmap
+
+    rng = np.random.default_rng(seed)
+    truth = pycolmap.Camera(
+        model="OPENCV", width=640, height=480, params=[500, 500, 330, 246, 0.05, 0, 0, 0]
+    )
+    start = pycolmap.Camera(
+        model="OPENCV", width=640, height=480, params=[500, 500, 320, 240, 0, 0, 0, 0]
+    )
+    start.camera_id = 1
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(start)
+    points = rng.normal(size=(300, 3))
+    points /= np.maximum(1.0, np.linalg.norm(points, axis=1, keepdims=True))
+    tracks: list[list] = [[] for _ in points]
+    for i in range(n_images):
+        angle = 2 * np.pi * i / n_images
+        center = np.array([4 * np.cos(angle), 4 * np.sin(angle), 0.5 * (-1) ** i])
+        forward = -center / np.linalg.norm(center)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        rotation = np.stack([right, down, forward])  # rows: camera axes in the world
+        cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ center)
+        xy = truth.img_from_cam((points @ rotation.T - rotation @ center).astype(np.float64))
+        image = pycolmap.Image(name=f"{i}.png", keypoints=xy, camera_id=1, image_id=i + 1)
+        model.add_image_with_trivial_frame(image, cam_from_world)
+        for j in range(len(points)):
+            tracks[j].append(pycolmap.TrackElement(i + 1, j))
+    for xyz, track in zip(points, tracks, strict=True):
+        model.add_point3D(xyz, pycolmap.Track(track))
+    model.update_point_3d_errors()
+    return model
+
+
+def test_refine_intrinsics_recovers_the_principal_point():
+    """Exact observations through a camera whose principal point is off the centre (10, 6 px)
+    and with radial distortion: the last adjustment finds both and the reprojection error falls
+    from pixels to ~0."""
+    model = synthetic_model(12)
+    refined = steps.refine_intrinsics(model, principal_point=True)
+    camera = model.cameras[1]
+    assert refined["principal_point_refined"]
+    assert refined["reprojection_error_before_px"] > 1.0
+    assert refined["reprojection_error_after_px"] < 0.01
+    np.testing.assert_allclose(camera.params[2:4], [330, 246], atol=0.1)
+    np.testing.assert_allclose(camera.params[4], 0.05, atol=1e-3)
+
+
+def test_refine_intrinsics_holds_the_principal_point_of_few_images():
+    """Below PRINCIPAL_POINT_MIN_IMAGES images the principal point stays where the mapper put it
+    (the focal length and distortion still move)."""
+    model = synthetic_model(steps.PRINCIPAL_POINT_MIN_IMAGES - 1)
+    refined = steps.refine_intrinsics(model, principal_point=True)
+    assert not refined["principal_point_refined"]
+    np.testing.assert_array_equal(model.cameras[1].params[2:4], [320, 240])
+    assert refined["reprojection_error_after_px"] < refined["reprojection_error_before_px"]

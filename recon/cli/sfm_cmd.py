@@ -124,6 +124,9 @@ def _summary_line(report: dict, root: Path) -> str:
 @config_option(SfmConfig, "matcher")
 @config_option(SfmConfig, "mapper")
 @config_option(SfmConfig, "camera_model")
+@config_option(
+    SfmConfig, "refine_principal_point", "--refine-principal-point/--fixed-principal-point"
+)
 @config_option(SfmConfig, "single_camera", "--single-camera/--multi-camera")
 @config_option(SfmConfig, "try_harder")
 @config_option(SfmConfig, "min_image_side", type=click.IntRange(1))

@@ -3,7 +3,8 @@ reconstruction plus a report out.
 
 Phases: photo validation and staging (`photos.py`), SIFT extraction, pair matching with
 two-view verification, incremental (or global) mapping with bundle adjustment, keeping the
-largest model, undistortion. When photos stay unregistered the engine tries harder on its own
+largest model, a last bundle adjustment that refines the intrinsics (principal point included),
+undistortion. When photos stay unregistered the engine tries harder on its own
 (more features and relaxed thresholds, then another matcher with guided matching) and keeps
 the best attempt; the report says which images are still out and why.
 """
@@ -244,6 +245,8 @@ def run_sfm(
         )
         if chosen.registered < min(3, len(photos.photos)):
             raise SfmError(failure_message(chosen, photos))
+        with timer("refinement"):
+            refinement = steps.refine_intrinsics(chosen.best, config.refine_principal_point)
         with timer("undistortion"):
             progress("undistortion", 0, 1)
             undistorted = steps.undistort(
@@ -256,6 +259,7 @@ def run_sfm(
             timer.wall[phase] = timer.wall.get(phase, 0.0) + attempt.timer.wall[phase]
             timer.cpu[phase] = timer.cpu.get(phase, 0.0) + attempt.timer.cpu[phase]
     report = build_report(config, photos, attempts, chosen, reconstruction, timer)
+    report["intrinsics_refinement"] = refinement
     report["total_wall_s"] = round(time.perf_counter() - start, 2)
     report["paths"] = {
         "database": str(chosen.database),
