@@ -122,3 +122,19 @@ def test_train_eval_render_at_levels_through_the_cli(ws_root):
     assert (
         bad.returncode != 0 and "not both" in bad.stderr and not (ws_root / "runs" / "x").exists()
     )
+
+
+def test_periodic_psnr_of_3dgs_renders_at_the_training_level(ws_root):
+    """The periodic held-out PSNR compares with photos of a coarser level (--eval-max-side); 3dgs
+    renders those views at its training level and area-downsamples (it aliases when minified)."""
+    ws = str(ws_root)
+    recon_cli(
+        "train", "-w", ws, "--method", "3dgs", "--run", "full", "--steps", "2", "--downscale",
+        "1", "--eval-views", "1", "--eval-max-side", "16", "--threads", "1",
+    )  # fmt: skip
+    run = json.loads((ws_root / "runs" / "full" / "run.json").read_text())
+    assert run["resolution"]["periodic_eval"] == {
+        "downscale": 2,
+        "size": [12, 12],
+        "rendered_at_downscale": 1,
+    }

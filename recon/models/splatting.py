@@ -314,6 +314,7 @@ class GaussianModel(Model):
     log_scales, opacity_logits, sh_dc (G, 1, 3), sh_rest (G, (degree+1)^2 - 1, 3)."""
 
     exports_splats = True
+    aliases_when_minified = True
 
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from recon.cameras import Cameras
+from recon.io.images import resize_area
 from recon.metrics.image import training_psnr
 from recon.models.base import Model, TrainData
 from recon.train.config import TrainConfig
@@ -52,17 +53,23 @@ def heldout_psnr(
     images: torch.Tensor,
     interrupted: Callable[[], bool] = lambda: False,
 ) -> float:
-    """Mean PSNR (dB) of the model's renders of held-out views against the photos. Raises
-    KeyboardInterrupt between two views once `interrupted()` (Ctrl-C / SIGTERM never waits for
-    a whole evaluation)."""
+    """Mean PSNR (dB) of the model's renders of held-out views against the photos (C, h, w, 3).
+    Cameras finer than the photos are rendered at their own size and area-downsampled to the
+    photos' (as the photos of a coarser pyramid level are made). Raises KeyboardInterrupt
+    between two views once `interrupted()` (Ctrl-C / SIGTERM never waits for a whole
+    evaluation)."""
     was_training = model.training
     model.eval()
     psnrs = []
+    height, width = images.shape[1:3]
     try:
         for i in range(len(cameras)):
             if interrupted():
                 raise KeyboardInterrupt
             rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
+            if rgb.shape[:2] != (height, width):
+                small = resize_area(rgb.float().cpu().numpy(), width, height)
+                rgb = torch.from_numpy(small).to(rgb.device)
             mse = torch.mean((rgb - images[i].to(rgb.device)) ** 2).item()
             psnrs.append(training_psnr(mse))
     finally:

@@ -194,14 +194,19 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     data = load_train_data(ws, scene, "train", device, res.downscale)
     log_fn(training_images_line(ws, len(data), len(scene.split("test"))))
     held = heldout_views(scene, cfg.eval_views)
-    k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
-    held_cams = scene.cameras(held, device, k_eval) if held else None
-    held_imgs = load_images(ws, scene, held, k_eval).to(device) if held else None
     model = spec.build(method_cfg, scene.info).to(device)
+    k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
+    k_render = res.downscale if model.aliases_when_minified else k_eval
+    held_cams = scene.cameras(held, device, k_render) if held else None
+    held_imgs = load_images(ws, scene, held, k_eval).to(device) if held else None
     resolution = {
         "working": res.to_json(),
         "sfm_size": [sfm_w, sfm_h],
-        "periodic_eval": {"downscale": k_eval, "size": list(level_size(sfm_w, sfm_h, k_eval))},
+        "periodic_eval": {
+            "downscale": k_eval,
+            "size": list(level_size(sfm_w, sfm_h, k_eval)),
+            "rendered_at_downscale": k_render,
+        },
     }
     run_doc = {
         "schema_version": RUN_SCHEMA_VERSION,
