@@ -226,11 +226,17 @@ def test_resume_with_pose_refinement_is_exact():
 
 
 def test_resume_after_a_snap_keeps_the_frozen_cameras():
-    """Densification ends at step 12 and every correction is below the (huge) threshold: all
-    cameras are frozen then, stay at their given poses, and a resumed run knows it."""
+    """Snaps from step 10 (every densify_interval = 5 steps) with every correction below the
+    (huge) threshold: all cameras are frozen at step 10, stay at their given poses, and a run
+    resumed at step 15 knows it."""
     scene, data = synthetic_scene(size=24)
     cfg = config(
-        densify_start=5, densify_interval=5, densify_stop=12, pose_refine=True, pose_snap_px=1e9
+        densify_start=5,
+        densify_interval=5,
+        densify_stop=12,
+        pose_refine=True,
+        pose_snap_px=1e9,
+        pose_snap_start=10,
     )
     _, resumed, first = straight_and_resumed(cfg, scene, data, saved_at=15, steps=20)
     assert first.pose_correction.frozen.all() and not first.pose_correction.twists.any()
