@@ -273,3 +273,52 @@ def test_one_pass_paths_match_the_sample_paths_on_an_unbounded_scene():
     slow = render_image(model._render_chunk, data.cameras[2], model.cfg.chunk)
     assert (fast["rgb"] - slow["rgb"]).abs().max() < 1e-4
     assert (fast["acc"] - slow["acc"]).abs().max() < 1e-4
+
+
+def test_pixel_footprint_worked_example():
+    from recon.cameras import Cameras
+    from recon.models.plenoxel import pixel_footprint
+
+    # Blender lego at 200 px: f = 100 / tan(0.6911 / 2) = 277.87 px, cameras 4.03 from the centre
+    K = torch.tensor([[277.87, 0, 100], [0, 277.87, 100], [0, 0, 1]])
+    cfw = torch.eye(4).repeat(3, 1, 1)
+    cfw[:, 2, 3] = torch.tensor([4.03, 4.03, 8.06])  # the centre 4.03, 4.03, 8.06 ahead
+    cams = Cameras(K.expand(3, 3, 3), cfw, torch.full((3,), 200), torch.full((3,), 200))
+    assert abs(pixel_footprint(cams, torch.zeros(3)) - 4.03 / 277.87) < 1e-6  # the median
+
+
+def test_finest_lattice_worked_examples():
+    from recon.models.plenoxel import finest_lattice, lattice_schedule
+
+    assert finest_lattice(0.588, 0.003165, False) == 192  # lego-200: 185.8 across -> 192
+    assert finest_lattice(3.0, 0.0145, False) == 192  # 206.9 -> 192
+    assert finest_lattice(3.0, 0.025, False) == 128  # 120 -> 128
+    assert finest_lattice(3.0, 0.03, True) == 192  # the box is the lattice's middle half: 200
+    assert finest_lattice(3.0, 0.0145, True) == 256  # 413.8, at most 256
+    assert finest_lattice(3.0, 0.0145 / 2, False) == 256  # twice the pixels (lego-400): 256
+    assert finest_lattice(3.0, 0.5, False) == 64  # at least 64
+    assert lattice_schedule((32, 64, 128, 0), 192) == (32, 64, 128, 192)
+    assert lattice_schedule((32, 64, 128, 0), 96) == (32, 64, 96)
+    assert lattice_schedule((32, 64, 128, 256), 96) == (32, 64, 128, 256)  # no 0: as given
+
+
+def test_the_finest_lattice_is_sized_once_and_saved():
+    import pytest
+
+    data, info = sphere_scene()
+    model = PlenoxelModel(sphere_config(resolutions=(16, 0)), info)
+    assert model.lattice_sizes() == (16, 0)  # nothing decided before the cameras are seen
+    note = model.plan_note(data)
+    sizes = model.lattice_sizes()
+    assert sizes[0] == 16 and sizes[-1] >= 64 and sizes[-1] % 32 == 0
+    assert "sized to the training photos" in note and str(sizes[-1]) in note
+    for step in range(62):
+        model.train_step(data, step)
+    assert model.res == sizes[-1]
+    fresh = PlenoxelModel(sphere_config(resolutions=(16, 0)), info)
+    fresh.load_state_dict(model.state_dict())
+    assert fresh.lattice_sizes() == sizes and fresh.res == sizes[-1]
+    assert "as configured" in PlenoxelModel(sphere_config(), info).plan_note(data)
+    for bad in ((0, 32), (16, 0, 64), ()):
+        with pytest.raises(ValueError, match="only the last"):
+            PlenoxelModel(sphere_config(resolutions=bad), info)

@@ -126,6 +126,11 @@ class Model(nn.Module):
     # at 1/3, four held-out photos at 1/8: 27.03 dB rendered at 1/8, 33.98 dB via 1/3).
     aliases_when_minified: bool = False
 
+    def plan_note(self, data: TrainData) -> str | None:
+        """What the model chose from the training data before its first step, and why (one
+        line the train stage logs), or None."""
+        return None
+
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         raise NotImplementedError
 

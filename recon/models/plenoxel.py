@@ -8,6 +8,7 @@ termination, and `volrend.volume_render` for the quadrature.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -41,10 +42,53 @@ from recon.volrend import (
     volume_render,
 )
 
+# The finest lattice sized to the training photos (`finest_lattice`): a multiple of this many
+# vertices, within these bounds. The bound above is the size used before the rule (measured to
+# fit a 10-minute CPU run); finer lattices (the Plenoxels paper's 512^3: `--preset paper`) hold
+# 4x the vertices per doubling of the surface's resolution and were not measured to pay here.
+LATTICE_MULTIPLE, LATTICE_MIN, LATTICE_MAX = 32, 64, 256
+
+
+def pixel_footprint(cameras: Cameras, center: Tensor) -> float:
+    """How wide one pixel is at the scene: the median over the C cameras of (distance from the
+    camera centre to `center` (3,)) / focal length in pixels, in scene units.
+    Example: a camera 4.03 from the centre with f = 277.9 px (Blender lego at 200 px) -> 0.0145."""
+    centers = cameras.world_from_cam[:, :3, 3].double()
+    distance = (centers - center.double().to(centers.device)).norm(dim=-1)
+    return float((distance / cameras.K[:, 0, 0].double()).median())
+
+
+def finest_lattice(side: float, footprint: float, unbounded: bool) -> int:
+    """The finest lattice size for a scene box of `side` seen by pixels `footprint` wide there:
+    about one voxel of the box per pixel (the box spans the whole lattice, or its middle half
+    when unbounded: `scene_to_unit_cube`), rounded to the nearest multiple of LATTICE_MULTIPLE,
+    within [LATTICE_MIN, LATTICE_MAX]. Finer voxels than the photos resolve only add parameters
+    for the total variation to smooth.
+    Measured (lego-200, 10 min, 2 threads, back to back, bench/results/volume_lean_fast.md):
+    192^3 (this rule) 3,704 steps, 33.43 dB, 1.32 GB peak, 21 MB on disk, 68-77 ms a frame;
+    256^3 2,929 steps, 32.85 dB, 2.12 GB, 42 MB, 90-117 ms.
+    Example: lego-200 (recon's box 0.588, pixels 0.003165 wide) -> 185.8 -> 192; side 3,
+    footprint 0.0145 -> 206.9 -> 192, unbounded 413.8 -> 416 -> 256."""
+    across = side / footprint / (0.5 if unbounded else 1.0)
+    size = math.floor(across / LATTICE_MULTIPLE + 0.5) * LATTICE_MULTIPLE
+    return min(max(size, LATTICE_MIN), LATTICE_MAX)
+
+
+def lattice_schedule(resolutions: tuple, finest: int) -> tuple:
+    """The coarse-to-fine sizes: `resolutions` with a last 0 replaced by `finest`, and coarser
+    sizes not below it dropped (as given while `finest` is 0: not decided yet).
+    Example: (32, 64, 128, 0), 96 -> (32, 64, 96)."""
+    if not resolutions or resolutions[-1] != 0 or finest <= 0:
+        return tuple(resolutions)
+    return tuple(r for r in resolutions[:-1] if r < finest) + (finest,)
+
 
 @dataclass(frozen=True)
 class PlenoxelConfig:
-    resolutions: tuple = opt((32, 64, 128, 256), "coarse-to-fine lattice sizes")
+    resolutions: tuple = opt(
+        (32, 64, 128, 0),
+        "coarse-to-fine lattice sizes; a last 0 is sized to the training photos (`finest_lattice`)",
+    )
     upsample_steps: tuple = opt(
         (150, 500, 1500), "steps at which the grid moves to the next resolution"
     )
@@ -94,6 +138,14 @@ class PlenoxelModel(Model):
         self.register_buffer("aabb", scene.aabb.clone())
         self.register_buffer("background", scene.background.clone())
         self.register_buffer("level", torch.zeros((), dtype=torch.long))
+        # the size a last 0 of cfg.resolutions stands for, fixed at the first step (0 = not yet)
+        self.register_buffer("finest", torch.zeros((), dtype=torch.long))
+        sizes = cfg.resolutions
+        if not sizes or sizes[0] <= 0 or any(r <= 0 for r in sizes[1:-1]) or sizes[-1] < 0:
+            raise ValueError(
+                "plenoxel resolutions: positive sizes, coarse to fine; only the last of two or "
+                f"more may be 0 (sized to the training photos), got {cfg.resolutions}"
+            )
         k = num_sh_bases(cfg.sh_degree)
         self.grid = SparseVoxelGrid(
             cfg.resolutions[0], {"density": 1, "sh": 3 * k}, {"density": 0.1}
@@ -311,15 +363,39 @@ class PlenoxelModel(Model):
             p.grad.index_add_(0, b, -g)
         return loss
 
+    def lattice_sizes(self, data: TrainData | None = None) -> tuple:
+        """The run's coarse-to-fine lattice sizes (`lattice_schedule`); a last 0 of
+        cfg.resolutions is sized by `finest_lattice` from the training cameras `data` the first
+        time they are given, and kept (saved with the model)."""
+        if self.cfg.resolutions[-1] == 0 and int(self.finest) == 0 and data is not None:
+            side = float((self.aabb[1] - self.aabb[0]).max())
+            center = self.aabb.mean(0)
+            footprint = pixel_footprint(data.cameras, center)
+            self.finest.fill_(finest_lattice(side, footprint, self.scene.unbounded))
+        return lattice_schedule(self.cfg.resolutions, int(self.finest))
+
+    def plan_note(self, data: TrainData) -> str | None:
+        sizes = self.lattice_sizes(data)
+        if self.cfg.resolutions[-1] != 0:
+            return f"plenoxel lattice {' -> '.join(map(str, sizes))} (as configured)"
+        footprint = pixel_footprint(data.cameras, self.aabb.mean(0))
+        side = float((self.aabb[1] - self.aabb[0]).max())
+        return (
+            f"plenoxel lattice {' -> '.join(map(str, sizes))}: the finest sized to the training "
+            f"photos (a pixel is {footprint:.4g} wide at the scene, the box {side:.3g}: "
+            f"about a voxel a pixel; `--set resolutions=...` to choose)"
+        )
+
     def _maybe_upsample(self, step: int, data: TrainData) -> None:
         lvl = int(self.level)
+        sizes = self.lattice_sizes(data)
         if (
-            lvl + 1 < len(self.cfg.resolutions)
+            lvl + 1 < len(sizes)
             and lvl < len(self.cfg.upsample_steps)
             and step >= self.cfg.upsample_steps[lvl]
         ):
             self.prune()
-            new_res = self.cfg.resolutions[lvl + 1]
+            new_res = sizes[lvl + 1]
             scale = (
                 new_res / self.res
             )  # keep optical thickness per unit length: d scales with 1/res
@@ -453,6 +529,7 @@ class PlenoxelModel(Model):
         """Grids change size during training: resize to the saved shapes first. Reads
         `state_dict()` and `file_state()` (see `_unpack_file_state`)."""
         state = dict(state)
+        state.setdefault("finest", torch.zeros((), dtype=torch.long))  # saved before it existed
         coords, values, res = self._unpack_file_state(state)
         self.grid.set_rows(coords, values, res)
         self._density_changed()
@@ -478,6 +555,7 @@ class PlenoxelModel(Model):
             "parameters": sum(p.numel() for p in self.grid.data.values()),
             "voxels": self.grid.num_rows,
             "resolution": self.res,
+            "finest_resolution": self.lattice_sizes()[-1],
             "occupied_fraction": self.occupancy.occupancy_fraction(),
         }
 
@@ -497,8 +575,9 @@ register(
                 "default_steps": 12800,
             },
             # SH degree 1 (12 instead of 27 SH floats a vertex): lego-200, 10 min, 2 threads,
-            # same VM back to back: 3,396 steps, 32.06 dB, LPIPS 0.0153, 1.45 GB peak, 20 MB,
-            # against fast's 2,484 steps, 32.56 dB, 0.0127, 2.04 GB, 42 MB
+            # same VM back to back, both with the 256^3 lattice of the time: 3,396 steps,
+            # 32.06 dB, LPIPS 0.0153, 1.45 GB peak, 20 MB, against fast's 2,484 steps,
+            # 32.56 dB, 0.0127, 2.04 GB, 42 MB
             "lean": {"sh_degree": 1},
         },
         # about 40k rays/s (adaptive batches up to 16k rays at 2.85 steps/s on lego-200, 2 threads)

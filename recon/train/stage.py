@@ -195,6 +195,8 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     log_fn(training_images_line(ws, len(data), len(scene.split("test"))))
     held = heldout_views(scene, cfg.eval_views)
     model = spec.build(method_cfg, scene.info).to(device)
+    if note := model.plan_note(data):
+        log_fn(note)
     k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
     k_render = res.downscale if model.aliases_when_minified else k_eval
     held_cams = scene.cameras(held, device, k_render) if held else None
