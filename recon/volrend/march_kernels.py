@@ -74,6 +74,32 @@ def unit_point(o, d, t, lo, hi, unbounded):
 
 
 @numba.njit(cache=True, inline="always")
+def box_affine(o, d, lo, hi):
+    """For a bounded box: the unit-cube point of o + t d is a + t b, a = (o - lo) / (hi - lo),
+    b = d / (hi - lo) -> (a0, a1, a2, b0, b1, b2). `unit_point` computes the same point with
+    three divisions a sample; this is two per axis a ray (the same point up to rounding: a
+    sample within ~1e-7 of a cell boundary may fall in the neighbouring cell)."""
+    s0, s1, s2 = hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]
+    return (
+        (o[0] - lo[0]) / s0,
+        (o[1] - lo[1]) / s1,
+        (o[2] - lo[2]) / s2,
+        d[0] / s0,
+        d[1] / s1,
+        d[2] / s2,
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def affine_point(a0, a1, a2, b0, b1, b2, t):
+    """a + t b (`box_affine`), x0 = -1 outside the unit cube, as `unit_point` returns it."""
+    x0, x1, x2 = a0 + t * b0, a1 + t * b1, a2 + t * b2
+    if x0 < 0.0 or x0 > 1.0 or x1 < 0.0 or x1 > 1.0 or x2 < 0.0 or x2 > 1.0:
+        return -1.0, x1, x2
+    return x0, x1, x2
+
+
+@numba.njit(cache=True, inline="always")
 def cell_occupied(x0, x1, x2, occ, res):
     """Is the unit-cube point (x0 >= 0: inside) in an occupied cell of the res^3 bitfield?"""
     if x0 < 0.0:
@@ -112,12 +138,16 @@ def _march_ray(
     s_min, s_max = warp(t_min, step, cone, t_far), warp(t_max, step, cone, t_far)
     count = int(math.ceil(max(s_max - s_min + u, 0.0)))  # noqa: RUF046 (numba typing)
     count = max(count, 1)
+    a0, a1, a2, b0, b1, b2 = box_affine(o, d, lo, hi)  # used when not unbounded
     n = 0
     for k in range(count):
         start, end = march_interval(k, t_min, t_max, s_min, u, step, cone, t_far)
         if not end > start:
             continue
-        x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded)
+        if unbounded:
+            x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, True)
+        else:
+            x0, x1, x2 = affine_point(a0, a1, a2, b0, b1, b2, 0.5 * (start + end))
         if cell_occupied(x0, x1, x2, occ, res):
             if write:
                 out_s[n] = start
