@@ -368,18 +368,20 @@ class PlenoxelModel(Model):
         cfg.resolutions is sized by `finest_lattice` from the training cameras `data` the first
         time they are given, and kept (saved with the model)."""
         if self.cfg.resolutions[-1] == 0 and int(self.finest) == 0 and data is not None:
-            side = float((self.aabb[1] - self.aabb[0]).max())
-            center = self.aabb.mean(0)
-            footprint = pixel_footprint(data.cameras, center)
+            side, footprint = self._box_and_pixel(data)
             self.finest.fill_(finest_lattice(side, footprint, self.scene.unbounded))
         return lattice_schedule(self.cfg.resolutions, int(self.finest))
+
+    def _box_and_pixel(self, data: TrainData) -> tuple[float, float]:
+        """The scene box's side and `pixel_footprint` of the training cameras at its centre."""
+        side = float((self.aabb[1] - self.aabb[0]).max())
+        return side, pixel_footprint(data.cameras, self.aabb.mean(0))
 
     def plan_note(self, data: TrainData) -> str | None:
         sizes = self.lattice_sizes(data)
         if self.cfg.resolutions[-1] != 0:
             return f"plenoxel lattice {' -> '.join(map(str, sizes))} (as configured)"
-        footprint = pixel_footprint(data.cameras, self.aabb.mean(0))
-        side = float((self.aabb[1] - self.aabb[0]).max())
+        side, footprint = self._box_and_pixel(data)
         return (
             f"plenoxel lattice {' -> '.join(map(str, sizes))}: the finest sized to the training "
             f"photos (a pixel is {footprint:.4g} wide at the scene, the box {side:.3g}: "

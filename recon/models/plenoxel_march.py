@@ -25,11 +25,10 @@ from torch import Tensor
 
 from recon.fields.voxel_kernels import lattice_cell, lattice_cell_index, lattice_value
 from recon.volrend.march_kernels import (
-    affine_point,
     box_affine,
     cell_occupied,
     march_interval,
-    unit_point,
+    ray_unit_point,
     warp,
 )
 from recon.volrend.volrend import _TAU_CAP
@@ -46,17 +45,14 @@ def _march_ray(
     s_min, s_max = warp(t_min, step, cone, t_far), warp(t_max, step, cone, t_far)
     count = max(int(math.ceil(max(s_max - s_min + u, 0.0))), 1)  # noqa: RUF046
     min_depth = -math.log(eps)  # T < eps  <=>  optical depth > -log eps
-    a0, a1, a2, b0, b1, b2 = box_affine(o, d, lo, hi)  # used when not unbounded
+    affine = box_affine(o, d, lo, hi)  # used when not unbounded
     depth = 0.0
     n = 0
     for k in range(count):
         start, end = march_interval(k, t_min, t_max, s_min, u, step, cone, t_far)
         if not end > start:
             continue
-        if unbounded:
-            x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, True)
-        else:
-            x0, x1, x2 = affine_point(a0, a1, a2, b0, b1, b2, 0.5 * (start + end))
+        x0, x1, x2 = ray_unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded, affine)
         if not cell_occupied(x0, x1, x2, occ, occ_res):
             continue
         if use_live and not live[lattice_cell_index(x0, x1, x2, res)]:
@@ -177,7 +173,7 @@ def _render(origins, dirs, t_min, t_max, basis, spacing, lo, hi, unbounded, occ,
         rows = np.empty(8, np.int64)  # the current sample's 8 lattice corners
         ws = np.empty(8, np.float64)
         t0, t1 = t_min[r], t_max[r]
-        a0, a1, a2, b0, b1, b2 = box_affine(o, d, lo, hi)  # used when not unbounded
+        affine = box_affine(o, d, lo, hi)  # used when not unbounded
         if t1 > t0:
             s_min, s_max = warp(t0, step, cone, t_far), warp(t1, step, cone, t_far)
             count = max(int(math.ceil(max(s_max - s_min, 0.0))), 1)  # noqa: RUF046
@@ -187,10 +183,7 @@ def _render(origins, dirs, t_min, t_max, basis, spacing, lo, hi, unbounded, occ,
                 if not end > start:
                     continue
                 mid = 0.5 * (start + end)
-                if unbounded:
-                    x0, x1, x2 = unit_point(o, d, mid, lo, hi, True)
-                else:
-                    x0, x1, x2 = affine_point(a0, a1, a2, b0, b1, b2, mid)
+                x0, x1, x2 = ray_unit_point(o, d, mid, lo, hi, unbounded, affine)
                 if not cell_occupied(x0, x1, x2, occ, occ_res):
                     continue
                 i0, i1, i2, f0, f1, f2 = lattice_cell(x0, x1, x2, res)

@@ -91,12 +91,23 @@ def box_affine(o, d, lo, hi):
 
 
 @numba.njit(cache=True, inline="always")
-def affine_point(a0, a1, a2, b0, b1, b2, t):
-    """a + t b (`box_affine`), x0 = -1 outside the unit cube, as `unit_point` returns it."""
+def affine_point(affine, t):
+    """a + t b for a ray's `box_affine` coefficients (a0, a1, a2, b0, b1, b2), x0 = -1 outside
+    the unit cube, as `unit_point` returns it."""
+    a0, a1, a2, b0, b1, b2 = affine
     x0, x1, x2 = a0 + t * b0, a1 + t * b1, a2 + t * b2
     if x0 < 0.0 or x0 > 1.0 or x1 < 0.0 or x1 > 1.0 or x2 < 0.0 or x2 > 1.0:
         return -1.0, x1, x2
     return x0, x1, x2
+
+
+@numba.njit(cache=True, inline="always")
+def ray_unit_point(o, d, t, lo, hi, unbounded, affine):
+    """The unit-cube point of o + t d for a march: `unit_point` (the contraction) when
+    unbounded, else `affine_point` with the ray's `box_affine` coefficients `affine`."""
+    if unbounded:
+        return unit_point(o, d, t, lo, hi, True)
+    return affine_point(affine, t)
 
 
 @numba.njit(cache=True, inline="always")
@@ -138,16 +149,13 @@ def _march_ray(
     s_min, s_max = warp(t_min, step, cone, t_far), warp(t_max, step, cone, t_far)
     count = int(math.ceil(max(s_max - s_min + u, 0.0)))  # noqa: RUF046 (numba typing)
     count = max(count, 1)
-    a0, a1, a2, b0, b1, b2 = box_affine(o, d, lo, hi)  # used when not unbounded
+    affine = box_affine(o, d, lo, hi)  # used when not unbounded
     n = 0
     for k in range(count):
         start, end = march_interval(k, t_min, t_max, s_min, u, step, cone, t_far)
         if not end > start:
             continue
-        if unbounded:
-            x0, x1, x2 = unit_point(o, d, 0.5 * (start + end), lo, hi, True)
-        else:
-            x0, x1, x2 = affine_point(a0, a1, a2, b0, b1, b2, 0.5 * (start + end))
+        x0, x1, x2 = ray_unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded, affine)
         if cell_occupied(x0, x1, x2, occ, res):
             if write:
                 out_s[n] = start
