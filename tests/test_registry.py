@@ -47,3 +47,16 @@ def test_a_run_from_a_newer_recon_is_refused(tmp_path):
     ws.model_path("r").write_bytes(b"")
     with pytest.raises(WorkspaceError, match="newer recon"):
         load_run(ws, "r")
+
+
+def test_a_saved_config_with_a_removed_option_still_loads():
+    """A run saved before an option was removed (3dgs's pose_snap_px, replaced by the pose
+    probation) loads with that key dropped; tuples come back as tuples."""
+    from recon.models.plenoxel import PlenoxelConfig
+    from recon.models.registry import config_from_json
+    from recon.models.splatting import GaussiansConfig
+
+    saved = {"pose_refine": True, "pose_snap_px": 1.5, "pose_snap_start": -1}
+    assert GaussiansConfig(**config_from_json(GaussiansConfig, saved)).pose_refine
+    pleno = config_from_json(PlenoxelConfig, {"resolutions": [32, 64]})
+    assert PlenoxelConfig(**pleno).resolutions == (32, 64)

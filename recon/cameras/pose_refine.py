@@ -30,9 +30,13 @@ shared twists removed and 0.02-0.03 deg with both; in a variant with neither (lr
 cameras had drifted 0.29 deg on average by step 500, 0.27 deg of it a common pitch.
 
 What the loss can hold is still noisy: against a scene being fitted, an exact camera's
-photometric optimum lies a quarter of a pixel to a pixel from the truth. `snap` therefore drops
-corrections that move the image by less than a threshold in pixels (`correction_pixels`) and
-holds those cameras at their given poses from then on; once some are held they fix the gauge.
+photometric optimum lies a quarter of a pixel to a pixel from the truth, so exact cameras refined
+from the start wander and the scene follows them. Cameras therefore start on probation: for the
+first passes their corrections stay at zero (the images are formed at the given poses, so the
+scene follows nothing) while `observe` sums each camera's pose gradient at its given pose; then
+`release` frees only the cameras the scene disagrees with, those whose mean gradient (its part
+the loss can hold, `gauge_basis`) is an outlier among all cameras' (`outlier_ratios`), and holds
+the others at their given poses for the rest of the run; the held ones fix the gauge.
 C = cameras.
 """
 
@@ -96,18 +100,19 @@ def gauge_basis(cam_from_world: Tensor, pivots: Tensor) -> Tensor:
     return U[:, S > 1e-9 * S[0]]
 
 
-def correction_pixels(twists: Tensor, pivots: Tensor, focal: Tensor) -> Tensor:
-    """About how far each correction moves the image of the scene, in pixels: f max(|phi|,
-    |o' - o| / d) with f the focal length (C,) in pixels and d the pivot depth (the scene
-    centre's; the turn alone where d = 0). A turn about the pivot moves the image edge by
-    ~f |phi|; a shift of the centre moves the scene centre's image by ~f |o' - o| / d.
-    Example: f = 278, phi = 0.1 deg about a pivot at d = 4 -> 278 * 0.001745 = 0.485 px.
-    (C, 6), (C,), (C,) -> (C,)."""
-    degrees, shift = correction_sizes(twists, pivots)
-    turn = torch.deg2rad(degrees)
-    d = pivots.double()
-    move = torch.where(d > 0, shift / torch.where(d > 0, d, 1.0), torch.zeros_like(shift))
-    return focal.double() * torch.maximum(turn, move)
+def outlier_ratios(mean_grads: Tensor, gauge: Tensor) -> Tensor:
+    """How far each camera's mean pose gradient stands out among the cameras': with g_i its
+    part off the gauge modes (`gauge_basis`, which no camera's error shows in), the larger of
+    |g_i rho| / median_j |g_j rho| and |g_i phi| / median_j |g_j phi| (translation and
+    rotation blocks apart: they have different units). An exact camera's gradient against the
+    scene being fitted is its small bias; a camera that is really off pulls consistently and
+    stands out. (C, 6) float64, (6C, r) -> (C,) float64.
+    Example: block sizes (rho, phi) (1, 1), (1, 1), (1, 2), (8, 1), no gauge -> (1, 1, 2, 8)."""
+    g = mean_grads.double().reshape(-1)
+    g = (g - gauge.double() @ (gauge.double().T @ g)).reshape(mean_grads.shape)
+    size = torch.stack([g[:, :3].norm(dim=-1), g[:, 3:].norm(dim=-1)], -1)  # (C, 2)
+    median = size.median(dim=0).values.clamp_min(torch.finfo(torch.float64).tiny)
+    return (size / median).max(dim=-1).values
 
 
 def correction_sizes(twists: Tensor, pivots: Tensor) -> tuple[Tensor, Tensor]:
@@ -120,14 +125,17 @@ def correction_sizes(twists: Tensor, pivots: Tensor) -> tuple[Tensor, Tensor]:
 
 class PoseCorrection(nn.Module):
     """One zero-initialised twist per training camera, `twists` (C, 6), turning it about a
-    pivot at depth `pivots` (C,) (a buffer: saved with the model, never trained), and `frozen`
-    (C,) cameras held at their given poses (`snap`)."""
+    pivot at depth `pivots` (C,) (a buffer: saved with the model, never trained), `frozen`
+    (C,) cameras held at their given poses (`release`), and the probation's sums of each
+    camera's pose gradient `grad_sums` (C, 6) over its `visits` (C,) (`observe`)."""
 
     def __init__(self, num_cameras: int):
         super().__init__()
         self.twists = nn.Parameter(torch.zeros(num_cameras, 6))
         self.register_buffer("pivots", torch.zeros(num_cameras))
         self.register_buffer("frozen", torch.zeros(num_cameras, dtype=torch.bool))
+        self.register_buffer("grad_sums", torch.zeros(num_cameras, 6, dtype=torch.float64))
+        self.register_buffer("visits", torch.zeros(num_cameras, dtype=torch.int64))
         self.gauge = None  # (6C, r), set with the cameras (`set_gauge`)
 
     def reset(self, cameras: Cameras, center: Tensor) -> None:
@@ -136,6 +144,8 @@ class PoseCorrection(nn.Module):
         self.twists = nn.Parameter(torch.zeros(len(cameras), 6, device=device))
         self.pivots = pivot_depths(cameras, center).to(device=device, dtype=self.pivots.dtype)
         self.frozen = torch.zeros(len(cameras), dtype=torch.bool, device=device)
+        self.grad_sums = torch.zeros(len(cameras), 6, dtype=torch.float64, device=device)
+        self.visits = torch.zeros(len(cameras), dtype=torch.int64, device=device)
         self.set_gauge(cameras)
 
     def set_gauge(self, cameras: Cameras) -> None:
@@ -148,17 +158,25 @@ class PoseCorrection(nn.Module):
         self.twists = nn.Parameter(self.twists.new_empty(num_cameras, 6))
         self.pivots = self.pivots.new_empty(num_cameras)
         self.frozen = self.frozen.new_zeros(num_cameras)
+        self.grad_sums = self.grad_sums.new_zeros(num_cameras, 6)
+        self.visits = self.visits.new_zeros(num_cameras)
 
     @torch.no_grad()
-    def snap(self, focal: Tensor, min_pixels: float) -> int:
-        """Drop the corrections that move their camera's image by less than `min_pixels`
-        (`correction_pixels`, focal (C,) in pixels) and hold those cameras at their given
-        poses from now on (`hold_frozen`); returns how many cameras stay free. Against a
-        scene still being fitted, the photometric optimum of an exact camera lies a quarter
-        of a pixel to a pixel from the truth, so corrections that small are noise the scene
-        would otherwise learn to follow, not pose errors."""
-        small = correction_pixels(self.twists, self.pivots, focal.to(self.pivots)) < min_pixels
-        self.frozen |= small.to(self.frozen.device)
+    def observe(self, index: int) -> None:
+        """Add camera `index`'s pose gradient (the row of `twists.grad`, taken at its given
+        pose while on probation) to its sum, and count the visit."""
+        if self.twists.grad is not None:
+            self.grad_sums[index] += self.twists.grad[index].double()
+            self.visits[index] += 1
+
+    @torch.no_grad()
+    def release(self, min_ratio: float) -> int:
+        """End the probation: free the cameras whose mean pose gradient is more than
+        `min_ratio` times the median camera's (`outlier_ratios`), hold the others at their
+        given poses from now on; returns how many are free."""
+        mean = self.grad_sums / self.visits.clamp_min(1)[:, None]
+        ratios = outlier_ratios(mean.cpu(), self.gauge).to(self.frozen.device)
+        self.frozen |= ~(ratios > min_ratio)
         self.hold_frozen()
         return int((~self.frozen).sum())
 
@@ -185,7 +203,7 @@ class PoseCorrection(nn.Module):
 
     def stats(self) -> dict[str, float]:
         """Mean and largest correction: rotation in degrees, centre shift in scene units; and
-        how many cameras are held at their given poses (`snap`)."""
+        how many cameras are held at their given poses (`release`)."""
         if len(self.twists) == 0:
             return {}
         degrees, shift = correction_sizes(self.twists, self.pivots)

@@ -94,8 +94,10 @@ def load_model(path: Path, scene: SceneInfo, device: str | torch.device = "cpu")
 
 
 def config_from_json(cls, d: dict) -> dict:
-    """A config dict read back from JSON: lists become tuples where the field's default is one."""
-    out = dict(d)
+    """A config dict read back from JSON: lists become tuples where the field's default is one,
+    and options the method no longer has (a run saved before they were removed) are dropped."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    out = {k: v for k, v in d.items() if k in names}
     for f in dataclasses.fields(cls):
         if isinstance(f.default, tuple) and isinstance(out.get(f.name), list):
             out[f.name] = tuple(out[f.name])
