@@ -12,8 +12,8 @@ from recon.cameras.cameras import invert_rigid
 from recon.cameras.pose_refine import (
     PoseCorrection,
     correct_cam_from_world,
-    outlier_ratios,
     correction_sizes,
+    outlier_ratios,
     pivot_corrections,
     pivot_depths,
 )
@@ -141,7 +141,7 @@ def test_outlier_ratios_worked_example_and_gauge():
 def test_release_frees_the_outliers_and_holds_the_rest():
     """40 cameras on a ring, 3 visits each with small random gradients; camera 7 is pulled
     along its x axis every visit (the gauge projection spreads 1/40 of that over all)."""
-    cams, module = ring_module(n=40)
+    _, module = ring_module(n=40)
     gen = torch.Generator().manual_seed(4)
     for visit in range(3):
         for i in range(40):
