@@ -52,3 +52,31 @@ def test_rays_at_worked_example_and_camera_rays():
         _, d, z = camera_rays(data.cameras, c)
         assert torch.allclose(rays["directions"][6 * c : 6 * c + 6], d.reshape(-1, 3))
         assert torch.allclose(rays["z_per_t"][6 * c : 6 * c + 6], z.reshape(-1))
+
+
+def test_recomposite_worked_example_and_exactness():
+    """0.6 = 0.5 * 0.2 + 0.5 * 1 on white, moved onto black: 0.1; any colour c, alpha a and
+    backgrounds: a c + (1 - a) old -> a c + (1 - a) new exactly."""
+    from recon.models.base import recomposite
+
+    out = recomposite(
+        torch.tensor([[0.6, 0.6, 0.6]]), torch.tensor([0.5]), torch.ones(3), torch.zeros(3)
+    )
+    assert torch.allclose(out, torch.full((1, 3), 0.1))
+    gen = torch.Generator().manual_seed(0)
+    c, a = torch.rand(5, 3, generator=gen), torch.rand(5, generator=gen)
+    old, new = torch.rand(3, generator=gen), torch.rand(5, 3, generator=gen)
+    on_old = a[:, None] * c + (1 - a[:, None]) * old
+    assert torch.allclose(
+        recomposite(on_old, a, old, new), a[:, None] * c + (1 - a[:, None]) * new, atol=1e-6
+    )
+
+
+def test_alpha_follows_the_rays_and_the_levels():
+    data = _data()
+    data = TrainData(data.images, data.cameras, torch.rand(2, 8, 12))
+    rays = data.rays_at(torch.tensor([0, 13, 191]))
+    assert torch.equal(rays["alpha"], data.alpha.reshape(-1)[[0, 13, 191]])
+    half = data.downsampled(2)
+    assert torch.allclose(half.alpha, data.alpha.reshape(2, 4, 2, 6, 2).mean((2, 4)), atol=1e-6)
+    assert "alpha" not in _data().rays_at(torch.tensor([0]))

@@ -3,6 +3,7 @@ VolSDF's of its distance, its gradient is exact, and a run saves, loads and resu
 
 import math
 
+import pytest
 import torch
 from test_ngp import RADIUS, eval_psnr, mean_colour_psnr, sphere_scene
 
@@ -148,3 +149,21 @@ def test_a_replan_refits_the_levels_schedule_but_not_the_learning_rate_decay():
     assert (model.cfg.lr_decay_steps, model.cfg.levels_steps) == (1000, 500)
     assert model.replan(400, 100) == 400
     assert (model.cfg.lr_decay_steps, model.cfg.levels_steps) == (1000, 200)
+
+
+def test_random_background_where_the_photos_have_alpha():
+    """auto: on for training data with alpha and the scene's fixed background, off without
+    alpha or with a learned environment; on without alpha is refused."""
+    from recon.models.base import TrainData
+
+    data, scene, _ = sphere_scene()
+    with_alpha = TrainData(data.images, data.cameras, torch.ones(data.images.shape[:3]))
+    model = SDFModel(SDFConfig(), scene)
+    assert model._random_background(with_alpha) and not model._random_background(data)
+    learned = SDFModel(SDFConfig(background="learned"), scene)
+    assert not learned._random_background(with_alpha)
+    with pytest.raises(ValueError, match="needs training photos with alpha"):
+        SDFModel(SDFConfig(random_background="on"), scene)._random_background(data)
+    off = SDFModel(SDFConfig(random_background="off"), scene)
+    assert not off._random_background(with_alpha)
+    assert math.isfinite(model.train_step(with_alpha, 0)["loss"])  # on random colours

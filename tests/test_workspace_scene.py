@@ -9,7 +9,13 @@ import pytest
 
 from recon.io.images import read_image, resize_area
 from recon.workspace import Workspace
-from recon.workspace.scene import ensure_pyramid_level, level_size, load_images, load_scene
+from recon.workspace.scene import (
+    ensure_pyramid_level,
+    level_size,
+    load_alpha,
+    load_images,
+    load_scene,
+)
 from tests.conftest import recon_cli, sphere_workspace
 
 
@@ -32,9 +38,9 @@ def test_level_is_the_area_resampled_sfm_image_and_is_built_once(ws_root):
     manifest = json.loads((level / "pyramid.json").read_text())
     assert manifest["downscale"] == 3
     f = scene.frames[0]
-    full = read_image(ws.resolve(f["image"]))[..., :3]
+    full = read_image(ws.resolve(f["image"]))  # RGBA: the synthetic sphere's photos had alpha
     small = read_image(ws.level_image(f["image"], 3))
-    assert small.shape == (8, 8, 3)
+    assert full.shape[-1] == 4 and small.shape == (8, 8, 4)  # the level keeps the alpha
     assert np.abs(small - resize_area(full, 8, 8)).max() <= 1 / 255 + 1e-6  # 8-bit PNG rounding
     stamp = os.stat(level / "pyramid.json").st_mtime_ns
     ensure_pyramid_level(ws, scene, 3)  # current: not rebuilt
@@ -42,6 +48,8 @@ def test_level_is_the_area_resampled_sfm_image_and_is_built_once(ws_root):
     imgs = load_images(ws, scene, scene.split("test"), 3)
     cams = scene.cameras(scene.split("test"), downscale=3)
     assert tuple(imgs.shape) == (2, 8, 8, 3) and cams.width.tolist() == [8, 8]
+    alpha = load_alpha(ws, scene, scene.split("test"), 3)
+    assert tuple(alpha.shape) == (2, 8, 8) and 0 < float(alpha.mean()) < 1
     assert cams.K[0, 0, 2].item() == pytest.approx(f["cx"] / 3)
 
 

@@ -54,9 +54,10 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:
-    """Write float RGB (H, W, 3) in [0, 1] (or uint8) as an 8-bit PNG, atomically."""
+    """Write float RGB (H, W, 3) or RGBA (H, W, 4) in [0, 1] (or uint8) as an 8-bit PNG,
+    atomically."""
     img = rgb if rgb.dtype == np.uint8 else to_uint8(rgb)
-    bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    bgr = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[-1] == 4 else cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(".png", bgr)
     if not ok:
         raise OSError(f"PNG encoding failed for {path}")

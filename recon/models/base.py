@@ -47,10 +47,13 @@ class TrainData:
 
     images: (C, H, W, 3) float32 in [0, 1], already composited on `SceneInfo.background`.
     cameras: C pinhole cameras of size (W, H).
+    alpha: (C, H, W) float32 coverage where the photos had an alpha channel, else None (a
+    model may then composite them on other backgrounds: `recomposite`).
     """
 
     images: Tensor
     cameras: Cameras
+    alpha: Tensor | None = None
     _levels: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -70,8 +73,12 @@ class TrainData:
             _, H, W, _ = self.images.shape
             w, h = max(1, W // factor), max(1, H // factor)
             small = np.stack([resize_area(im, w, h) for im in self.images.cpu().numpy()])
+            alpha = None
+            if self.alpha is not None:
+                alpha = np.stack([resize_area(a, w, h) for a in self.alpha.cpu().numpy()])
+                alpha = torch.from_numpy(alpha).to(self.images.device)
             self._levels[factor] = TrainData(
-                torch.from_numpy(small).to(self.images.device), self.cameras.resized(w, h)
+                torch.from_numpy(small).to(self.images.device), self.cameras.resized(w, h), alpha
             )
         return self._levels[factor]
 
@@ -83,7 +90,7 @@ class TrainData:
         """The rays of training pixels given by flat indices (N,) into (C, H, W), computed on
         demand (a stored table of every pixel would hold ~36 bytes a pixel: 144 MB for 100
         views at 200 x 200): origins (N, 3), directions (N, 3) unit, z_per_t (N,), rgb (N, 3),
-        camera (N,) int64. Example: with C = 2 views of 2 x 3 pixels, index 7 is camera 1,
+        camera (N,) int64, and alpha (N,) where the data has it. Example: with C = 2 views of 2 x 3 pixels, index 7 is camera 1,
         row 0, column 1, through the pixel centre (1.5, 0.5)."""
         H, W = self.images.shape[1:3]
         index = index.to(self.images.device)
@@ -92,17 +99,27 @@ class TrainData:
         o, d, z = rays_from_pixels(
             uv, self.cameras.K[camera].float(), self.cameras.world_from_cam[camera].float()
         )
-        return {
+        rays = {
             "origins": o,
             "directions": d,
             "z_per_t": z,
             "rgb": self.images.reshape(-1, 3)[index],
             "camera": camera,
         }
+        if self.alpha is not None:
+            rays["alpha"] = self.alpha.reshape(-1)[index]
+        return rays
 
     def rays(self) -> dict[str, Tensor]:
         """Every training pixel's ray (`rays_at` of all of them), in (C, H, W) order."""
         return self.rays_at(torch.arange(self.num_pixels))
+
+
+def recomposite(rgb: Tensor, alpha: Tensor, old: Tensor, new: Tensor) -> Tensor:
+    """Pixels composited on `old` moved onto `new`: a c + (1 - a) old -> a c + (1 - a) new, i.e.
+    rgb + (1 - a) (new - old), exact without dividing by a. rgb (N, 3), alpha (N,), old (3,),
+    new (3,) or (N, 3). Example: rgb 0.6 = 0.5 * 0.2 + 0.5 * 1 on white, onto black -> 0.1."""
+    return rgb + (1.0 - alpha)[:, None] * (new - old)
 
 
 class Model(nn.Module):

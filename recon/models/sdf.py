@@ -21,6 +21,12 @@ Jacobian, `recon.fields.sdf`).
 
 An unbounded capture keeps the field in the scene box and learns what lies beyond it as an
 environment map of the view direction (`recon.models.background`), composited behind.
+
+Where the training photos have alpha (a synthetic capture), each training ray is composited on
+a random colour, its target moved onto the same colour (`recomposite`), as Instant-NGP trains
+its synthetic scenes (Mueller et al. 2022, appendix): against a fixed white background an SDF
+may close the surface anywhere a view sees white, while a ray whose pixel is transparent must
+now stay empty whatever the colour behind it.
 """
 
 from __future__ import annotations
@@ -36,7 +42,15 @@ from recon.fields.sdf import SDFField, eikonal_loss, sdf_and_gradient
 from recon.fields.sh import num_sh_bases, sh_basis
 from recon.metrics.image import training_psnr
 from recon.models.background import EnvironmentMap, learns_background
-from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.base import (
+    MethodSpec,
+    Model,
+    ResolutionPolicy,
+    SceneInfo,
+    TrainData,
+    recomposite,
+    register,
+)
 from recon.models.raymarch import mlp, points_in_box, ray_bounds, render_image, sample_rays
 from recon.models.schedules import (
     exp_decay_lr,
@@ -88,6 +102,10 @@ class SDFConfig:
     max_samples_per_ray: int = opt(1024, "at most this many marched samples per ray (0 = no cap)")
     background: str = opt(
         "auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned"
+    )
+    random_background: str = opt(
+        "auto",
+        "auto (on where the training photos have alpha and the background is the scene's colour) | on | off: train each ray on a random background colour",
     )
     occupancy_res: int = opt(64, "occupancy grid resolution")
     occupancy_every: int = opt(16, "steps between occupancy-grid updates")
@@ -262,15 +280,32 @@ class SDFModel(Model):
     def background_colour(self, directions: Tensor) -> Tensor:
         return self.background if self.environment is None else self.environment(directions)
 
-    def _render_rays(self, origins: Tensor, directions: Tensor, training: bool):
-        """-> (VolumeRender, grad f (N, 3) at the rendered samples)."""
+    def _render_rays(
+        self, origins: Tensor, directions: Tensor, training: bool, background: Tensor | None = None
+    ):
+        """-> (VolumeRender, grad f (N, 3) at the rendered samples); composited on `background`
+        (3,) or (R, 3), by default the model's (`background_colour`)."""
         ri, t0, t1, x = self._kept_samples(origins, directions, jitter=training)
         sdf, grad, feature = sdf_and_gradient(self.field, self.to_field(x), create_graph=training)
         sigma = volsdf_density(sdf, self.beta()) / self.half_size
         dir_enc = sh_basis(self.cfg.sh_degree, directions)[ri]
         rgb = self._radiance(feature, grad, dir_enc)
-        bg = self.background_colour(directions)
+        bg = self.background_colour(directions) if background is None else background
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], bg), grad
+
+    def _random_background(self, data: TrainData) -> bool:
+        """`random_background` for these training data: auto is on where they have alpha and
+        the model composites on the scene's colour (not a learned environment)."""
+        mode = self.cfg.random_background
+        if mode not in ("auto", "on", "off"):
+            raise ValueError(f"random_background must be auto, on or off, got {mode!r}")
+        if mode == "on" and (data.alpha is None or self.environment is not None):
+            raise ValueError(
+                "random_background=on needs training photos with alpha and the scene's background"
+            )
+        return mode == "on" or (
+            mode == "auto" and data.alpha is not None and self.environment is None
+        )
 
     # ---- Model interface ---------------------------------------------------------------------
     def replan(self, schedule_steps: int, step: int) -> int:
@@ -299,8 +334,12 @@ class SDFModel(Model):
         set_lr(self.optimizer, lr, "mlp")
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        out, grad = self._render_rays(batch["origins"], batch["directions"], training=True)
-        mse = torch.mean((out.rgb - batch["rgb"]) ** 2)
+        target, background = batch["rgb"], None
+        if self._random_background(data):
+            background = torch.rand(n_rays, 3, generator=self.generator).to(target)
+            target = recomposite(target, batch["alpha"], self.background, background)
+        out, grad = self._render_rays(batch["origins"], batch["directions"], True, background)
+        mse = torch.mean((out.rgb - target) ** 2)
         box = torch.rand(cfg.eikonal_points, 3, generator=self.generator) * 2 - 1
         _, box_grad, _ = sdf_and_gradient(self.field, box.to(self.aabb), create_graph=True)
         eikonal = eikonal_loss(torch.cat([grad, box_grad]))

@@ -60,15 +60,19 @@ def undistort(img: np.ndarray, K: np.ndarray, dist: np.ndarray) -> tuple[np.ndar
 def prepare_image(
     frame, cfg: SceneConfig, background
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Load, composite, undistort and downscale one image -> (rgb, K, mask of alpha > 0 at the
-    output size, or None without alpha; the mask is not undistorted: it only bounds the box)."""
+    """Load, composite, undistort and downscale one image -> (image, K, mask of alpha > 0 at the
+    output size, or None without alpha; the mask is not undistorted: it only bounds the box).
+    The image is RGB, or with alpha RGBA whose colour is already composited on `background`
+    (what every reader of the RGB sees) and whose alpha went through the same undistortion
+    and resampling (what a model may train against other backgrounds with)."""
     try:
         img = read_image(frame.path)
     except ValueError as e:
         raise SourceError(str(e)) from e
     alpha = img[..., 3] if img.shape[-1] == 4 else None
     K = frame.K.copy()
-    img = composite(img, background) if alpha is not None else img
+    if alpha is not None:
+        img = np.concatenate([composite(img, background), alpha[..., None]], axis=-1)
     if frame.dist is not None:
         img, K = undistort(img, K, frame.dist)
     if cfg.downscale > 1:

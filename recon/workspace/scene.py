@@ -113,7 +113,7 @@ def ensure_pyramid_level(ws: Workspace, scene: Scene, downscale: int) -> None:
         with atomic_dir(level) as tmp:
             for f in scene.frames:
                 rel = ws.level_image(f["image"], downscale).relative_to(level)
-                img = read_image(ws.resolve(f["image"]))[..., :3]
+                img = read_image(ws.resolve(f["image"]))  # RGB, or RGBA (alpha kept)
                 write_png(
                     tmp / rel, resize_area(img, *level_size(f["width"], f["height"], downscale))
                 )
@@ -145,12 +145,30 @@ def load_images(
     return torch.from_numpy(np.stack(imgs))
 
 
+def load_alpha(
+    ws: Workspace, scene: Scene, indices: list[int], downscale: int = 1
+) -> torch.Tensor | None:
+    """(C, H, W) float32 coverage of the given frames at pyramid level `downscale`, or None
+    unless every one of them was written with alpha (`recon sfm` keeps an RGBA source's)."""
+    ensure_pyramid_level(ws, scene, downscale)
+    alphas = []
+    for i in indices:
+        img = read_image(ws.level_image(scene.frames[i]["image"], downscale))
+        if img.shape[-1] != 4:
+            return None
+        alphas.append(img[..., 3])
+    return torch.from_numpy(np.stack(alphas))
+
+
 def load_train_data(
     ws: Workspace, scene: Scene, split: str = "train", device="cpu", downscale: int = 1
 ) -> TrainData:
     idx = scene.split(split)
     if not idx:
         raise WorkspaceError(f"the scene has no '{split}' images")
+    alpha = load_alpha(ws, scene, idx, downscale)
     return TrainData(
-        load_images(ws, scene, idx, downscale).to(device), scene.cameras(idx, device, downscale)
+        load_images(ws, scene, idx, downscale).to(device),
+        scene.cameras(idx, device, downscale),
+        None if alpha is None else alpha.to(device),
     )
