@@ -153,17 +153,26 @@ def test_a_replan_refits_the_levels_schedule_but_not_the_learning_rate_decay():
 
 def test_random_background_where_the_photos_have_alpha():
     """auto: on for training data with alpha and the scene's fixed background, off without
-    alpha or with a learned environment; on without alpha is refused."""
+    alpha or with a learned environment; on without alpha is refused; off by default."""
     from recon.models.base import TrainData
 
     data, scene, _ = sphere_scene()
     with_alpha = TrainData(data.images, data.cameras, torch.ones(data.images.shape[:3]))
-    model = SDFModel(SDFConfig(), scene)
+    model = SDFModel(SDFConfig(random_background="auto"), scene)
     assert model._random_background(with_alpha) and not model._random_background(data)
-    learned = SDFModel(SDFConfig(background="learned"), scene)
+    assert not SDFModel(SDFConfig(), scene)._random_background(with_alpha)
+    learned = SDFModel(SDFConfig(background="learned", random_background="auto"), scene)
     assert not learned._random_background(with_alpha)
     with pytest.raises(ValueError, match="needs training photos with alpha"):
         SDFModel(SDFConfig(random_background="on"), scene)._random_background(data)
-    off = SDFModel(SDFConfig(random_background="off"), scene)
-    assert not off._random_background(with_alpha)
     assert math.isfinite(model.train_step(with_alpha, 0)["loss"])  # on random colours
+
+
+def test_mask_loss_worked_example_and_limits():
+    from recon.models.sdf import mask_loss
+
+    assert mask_loss(torch.tensor([0.9]), torch.tensor([1.0])).item() == pytest.approx(0.1053605)
+    assert mask_loss(torch.tensor([0.0, 1.0]), torch.tensor([0.0, 1.0])).item() < 2e-3
+    assert mask_loss(torch.tensor([1.0]), torch.tensor([0.0])).item() == pytest.approx(
+        -math.log(1e-3), rel=1e-4
+    )
