@@ -166,6 +166,9 @@ def test_random_background_where_the_photos_have_alpha():
     with pytest.raises(ValueError, match="needs training photos with alpha"):
         SDFModel(SDFConfig(random_background="on"), scene)._random_background(data)
     assert math.isfinite(model.train_step(with_alpha, 0)["loss"])  # on random colours
+    for bad in ({"random_background": "maybe"}, {"mask_weight": -0.1}):
+        with pytest.raises(ValueError, match="must be"):
+            SDFModel(SDFConfig(**bad), scene)
 
 
 def test_mask_loss_worked_example_and_limits():

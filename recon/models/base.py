@@ -90,8 +90,8 @@ class TrainData:
         """The rays of training pixels given by flat indices (N,) into (C, H, W), computed on
         demand (a stored table of every pixel would hold ~36 bytes a pixel: 144 MB for 100
         views at 200 x 200): origins (N, 3), directions (N, 3) unit, z_per_t (N,), rgb (N, 3),
-        camera (N,) int64, and alpha (N,) where the data has it. Example: with C = 2 views of 2 x 3 pixels, index 7 is camera 1,
-        row 0, column 1, through the pixel centre (1.5, 0.5)."""
+        camera (N,) int64, and alpha (N,) where the data has it. Example: with C = 2 views of
+        2 x 3 pixels, index 7 is camera 1, row 0, column 1, through the pixel centre (1.5, 0.5)."""
         H, W = self.images.shape[1:3]
         index = index.to(self.images.device)
         camera, pixel = index // (H * W), index % (H * W)

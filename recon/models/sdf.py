@@ -196,6 +196,12 @@ class SDFModel(Model):
         self.environment = (
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
+        if cfg.random_background not in ("auto", "on", "off"):
+            raise ValueError(
+                f"random_background must be auto, on or off, got {cfg.random_background!r}"
+            )
+        if cfg.mask_weight < 0:
+            raise ValueError(f"mask_weight must be >= 0, got {cfg.mask_weight}")
         self.box_scene = replace(scene, unbounded=False)  # the field ends at the box
         diag = (self.aabb[1] - self.aabb[0]).norm().item()
         self.step_size = diag / cfg.march_steps
@@ -313,8 +319,6 @@ class SDFModel(Model):
         """`random_background` for these training data: auto is on where they have alpha and
         the model composites on the scene's colour (not a learned environment)."""
         mode = self.cfg.random_background
-        if mode not in ("auto", "on", "off"):
-            raise ValueError(f"random_background must be auto, on or off, got {mode!r}")
         if mode == "on" and (data.alpha is None or self.environment is not None):
             raise ValueError(
                 "random_background=on needs training photos with alpha and the scene's background"

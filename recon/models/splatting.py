@@ -177,7 +177,7 @@ class GaussiansConfig:
     pose_refine_start: int = opt(0, "first step of the pose probation")
     pose_probation: int = opt(
         -1,
-        f"steps during which the poses stay as given while their gradients are summed (-1 = {POSE_PROBATION_PASSES} passes over the training views)",
+        f"steps during which the poses stay as given while their gradients are summed (-1 = {POSE_PROBATION_PASSES} passes over the training views; 0 = none: every camera is refined)",
     )
     pose_release_ratio: float = opt(
         6.0,
