@@ -6,14 +6,15 @@ import os
 
 import numpy as np
 import pytest
+import torch
 
 from recon.io.images import read_image, resize_area
 from recon.workspace import Workspace
 from recon.workspace.scene import (
     ensure_pyramid_level,
     level_size,
-    load_alpha,
     load_images,
+    load_images_and_alpha,
     load_scene,
 )
 from tests.conftest import recon_cli, sphere_workspace
@@ -48,8 +49,9 @@ def test_level_is_the_area_resampled_sfm_image_and_is_built_once(ws_root):
     imgs = load_images(ws, scene, scene.split("test"), 3)
     cams = scene.cameras(scene.split("test"), downscale=3)
     assert tuple(imgs.shape) == (2, 8, 8, 3) and cams.width.tolist() == [8, 8]
-    alpha = load_alpha(ws, scene, scene.split("test"), 3)
-    assert tuple(alpha.shape) == (2, 8, 8) and 0 < float(alpha.mean()) < 1
+    rgb, alpha = load_images_and_alpha(ws, scene, scene.split("test"), 3)
+    assert torch.equal(rgb, imgs) and tuple(alpha.shape) == (2, 8, 8)
+    assert 0 < float(alpha.mean()) < 1
     assert cams.K[0, 0, 2].item() == pytest.approx(f["cx"] / 3)
 
 

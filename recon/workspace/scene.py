@@ -128,36 +128,30 @@ def _level_source(level) -> str | None:
         return None
 
 
-def load_images(
+def load_images_and_alpha(
     ws: Workspace, scene: Scene, indices: list[int], downscale: int = 1
-) -> torch.Tensor:
-    """(C, H, W, 3) float32 images of the given frames (all of one size) at pyramid level
-    `downscale` (built on first use)."""
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The given frames (all of one size) at pyramid level `downscale` (built on first use),
+    each file read once: (C, H, W, 3) float32 colour, and (C, H, W) float32 alpha, or None
+    unless every one of them was written with alpha (`recon sfm` keeps an RGBA source's)."""
     ensure_pyramid_level(ws, scene, downscale)
-    imgs = [
-        read_image(ws.level_image(scene.frames[i]["image"], downscale))[..., :3] for i in indices
-    ]
-    shapes = {im.shape for im in imgs}
+    imgs = [read_image(ws.level_image(scene.frames[i]["image"], downscale)) for i in indices]
+    shapes = {im.shape[:2] for im in imgs}
     if len(shapes) > 1:
         raise WorkspaceError(
             f"training images have different sizes {sorted(shapes)}; rerun sfm with one camera"
         )
-    return torch.from_numpy(np.stack(imgs))
+    rgb = torch.from_numpy(np.stack([im[..., :3] for im in imgs]))
+    if not all(im.shape[-1] == 4 for im in imgs):
+        return rgb, None
+    return rgb, torch.from_numpy(np.stack([im[..., 3] for im in imgs]))
 
 
-def load_alpha(
+def load_images(
     ws: Workspace, scene: Scene, indices: list[int], downscale: int = 1
-) -> torch.Tensor | None:
-    """(C, H, W) float32 coverage of the given frames at pyramid level `downscale`, or None
-    unless every one of them was written with alpha (`recon sfm` keeps an RGBA source's)."""
-    ensure_pyramid_level(ws, scene, downscale)
-    alphas = []
-    for i in indices:
-        img = read_image(ws.level_image(scene.frames[i]["image"], downscale))
-        if img.shape[-1] != 4:
-            return None
-        alphas.append(img[..., 3])
-    return torch.from_numpy(np.stack(alphas))
+) -> torch.Tensor:
+    """(C, H, W, 3) float32 images of the given frames (`load_images_and_alpha`'s colour)."""
+    return load_images_and_alpha(ws, scene, indices, downscale)[0]
 
 
 def load_train_data(
@@ -166,9 +160,9 @@ def load_train_data(
     idx = scene.split(split)
     if not idx:
         raise WorkspaceError(f"the scene has no '{split}' images")
-    alpha = load_alpha(ws, scene, idx, downscale)
+    rgb, alpha = load_images_and_alpha(ws, scene, idx, downscale)
     return TrainData(
-        load_images(ws, scene, idx, downscale).to(device),
+        rgb.to(device),
         scene.cameras(idx, device, downscale),
         None if alpha is None else alpha.to(device),
     )
