@@ -204,9 +204,9 @@ def test_fine_samples_concentrate_where_coarse_weight_is():
     seen = {}
     original = model._render_net
 
-    def spy(net, o_, d_, t0, t1):
+    def spy(net, o_, d_, t0, t1, bg=None):
         seen[net is model.fine] = (t0, t1)
-        return original(net, o_, d_, t0, t1)
+        return original(net, o_, d_, t0, t1, bg)
 
     model._render_net = spy
     with torch.no_grad():

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from recon.fields.sh import num_sh_bases, sh_basis
 
 BACKGROUNDS = ("auto", "scene", "learned")
+RANDOM_BACKGROUNDS = ("auto", "on", "off")
 
 
 def learns_background(mode: str, unbounded: bool) -> bool:
@@ -27,6 +28,26 @@ def learns_background(mode: str, unbounded: bool) -> bool:
     if mode not in BACKGROUNDS:
         raise ValueError(f"background must be one of {', '.join(BACKGROUNDS)}, got {mode!r}")
     return mode == "learned" or (mode == "auto" and unbounded)
+
+
+def check_random_background(mode: str) -> None:
+    if mode not in RANDOM_BACKGROUNDS:
+        raise ValueError(f"random_background must be auto, on or off, got {mode!r}")
+
+
+def trains_on_random_background(mode: str, has_alpha: bool, learned: bool) -> bool:
+    """Whether training rays are composited on a random colour each (the target moved onto it
+    by `recomposite`), as Instant-NGP trains synthetic scenes (Mueller et al. 2022):
+    on a fixed background, haze of the background's own colour costs nothing, so a model keeps
+    it; on random colours it costs. Needs the photos' alpha and a fixed background colour.
+    mode: "on" (an error without alpha, or with a learned environment), "off", or "auto" (on
+    where the photos have alpha and the background is the scene's colour)."""
+    check_random_background(mode)
+    if mode == "on" and (not has_alpha or learned):
+        raise ValueError(
+            "random_background=on needs training photos with alpha and the scene's background"
+        )
+    return mode == "on" or (mode == "auto" and has_alpha and not learned)
 
 
 class EnvironmentMap(nn.Module):

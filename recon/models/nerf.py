@@ -34,8 +34,21 @@ from torch import Tensor, nn
 from recon.cameras import Cameras
 from recon.fields.encodings import positional_encoding, positional_encoding_dim
 from recon.metrics.image import training_psnr
-from recon.models.background import EnvironmentMap, learns_background
-from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.background import (
+    EnvironmentMap,
+    check_random_background,
+    learns_background,
+    trains_on_random_background,
+)
+from recon.models.base import (
+    MethodSpec,
+    Model,
+    ResolutionPolicy,
+    SceneInfo,
+    TrainData,
+    recomposite,
+    register,
+)
 from recon.models.raymarch import (
     mlp_dtype,
     points_in_box,
@@ -97,6 +110,10 @@ class NeRFConfig:
     )
     background: str = opt(
         "auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned"
+    )
+    random_background: str = opt(
+        "off",
+        "auto (on where the training photos have alpha and the background is the scene's colour) | on | off: train each ray on a random background colour",
     )
     precision: str = opt(
         "auto", "MLP matmuls: auto (bf16 where native: AMX / AVX512-BF16 / CUDA) | bf16 | fp32"
@@ -212,6 +229,7 @@ class NeRFModel(Model):
         self.environment = (
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
+        check_random_background(cfg.random_background)
         self.dtype = mlp_dtype(self.aabb.device, cfg.precision)
         self.step_size = (self.aabb[1] - self.aabb[0]).norm().item() / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
@@ -273,7 +291,17 @@ class NeRFModel(Model):
             return spaced_intervals(t_min, t_max, n, jitter, inv, inv, g)
         return stratified_intervals(t_min, t_max, n, jitter, g)
 
-    def _render_net(self, net: NeRFMLP, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor):
+    def _render_net(
+        self,
+        net: NeRFMLP,
+        o: Tensor,
+        d: Tensor,
+        t0: Tensor,
+        t1: Tensor,
+        bg: Tensor | None = None,
+    ):
+        """One network's render of the intervals (R, S), composited on bg (R, 3) (None: the
+        model's background)."""
         R, S = t0.shape
         x = o[:, None] + (0.5 * (t0 + t1))[..., None] * d[:, None]  # (R, S, 3)
         x_enc = self.encode_points(x.reshape(-1, 3)).to(self.dtype)  # cast once: the skip reuses it
@@ -287,9 +315,8 @@ class NeRFModel(Model):
             sigma[: R * S],
             rgb[: R * S],
         )  # the padded rows get no gradient: weights see none
-        return volume_render(
-            sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=self.background_colour(d)
-        )
+        bg = self.background_colour(d) if bg is None else bg
+        return volume_render(sigma.view(R, S), rgb.view(R, S, 3), t0, t1, background=bg)
 
     def _render_terminated(
         self, net: NeRFMLP, o: Tensor, d: Tensor, t0: Tensor, t1: Tensor, colour: bool
@@ -326,39 +353,57 @@ class NeRFModel(Model):
         return volume_render(sigma, rgb, t0, t1, background=self.background_colour(d))
 
     def _render_hits(
-        self, o: Tensor, d: Tensor, t_min: Tensor, t_max: Tensor, jitter: bool, terminate: bool
+        self,
+        o: Tensor,
+        d: Tensor,
+        t_min: Tensor,
+        t_max: Tensor,
+        jitter: bool,
+        terminate: bool,
+        bg: Tensor | None = None,
     ):
         """Coarse render, inverse-CDF fine samples, fine render -> (coarse, fine) VolumeRender.
-        terminate: both passes by `_render_terminated` (renders; the coarse colours are then 0)."""
+        terminate: both passes by `_render_terminated` (renders; the coarse colours are then 0).
+        bg: (R, 3) per-ray background for training (None: the model's)."""
         t0, t1 = self._intervals(t_min, t_max, jitter)
         if terminate:
             coarse = self._render_terminated(self.coarse, o, d, t0, t1, colour=False)
         else:
-            coarse = self._render_net(self.coarse, o, d, t0, t1)
+            coarse = self._render_net(self.coarse, o, d, t0, t1, bg)
         edges = torch.cat([t0, t1[:, -1:]], -1)
         t_fine = sample_pdf(edges, coarse.weights, self.cfg.n_fine, jitter, self.generator)
         t_all = merge_points(0.5 * (t0 + t1), t_fine)
         f0, f1 = intervals_from_points(t_all, t_min, t_max)
         if terminate:
             return coarse, self._render_terminated(self.fine, o, d, f0, f1, colour=True)
-        return coarse, self._render_net(self.fine, o, d, f0, f1)
+        return coarse, self._render_net(self.fine, o, d, f0, f1, bg)
 
     def _render_rays(
-        self, o: Tensor, d: Tensor, jitter: bool, terminate: bool = False
+        self,
+        o: Tensor,
+        d: Tensor,
+        jitter: bool,
+        terminate: bool = False,
+        background: Tensor | None = None,
     ) -> tuple[dict, dict]:
         """Both passes on the rays with a non-empty range only -> (coarse, fine) dicts of rgb (R, 3),
         depth (R,) (expected t), acc (R,) and hit (R,) bool; rays that miss get the background, 0, 0.
-        terminate: early ray termination (`_render_terminated`; renders only)."""
+        terminate: early ray termination (`_render_terminated`; renders only).
+        background: (R, 3) colours to composite on (training on random backgrounds; None: the
+        model's own)."""
         t_min, t_max = self._ray_range(o, d, jitter)
         is_hit = t_max > t_min
         hit = is_hit.nonzero()[:, 0]
         if hit.numel() == o.shape[0]:
-            passes = self._render_hits(o, d, t_min, t_max, jitter, terminate)
+            passes = self._render_hits(o, d, t_min, t_max, jitter, terminate, background)
         else:
-            passes = self._render_hits(o[hit], d[hit], t_min[hit], t_max[hit], jitter, terminate)
+            bg = None if background is None else background[hit]
+            passes = self._render_hits(
+                o[hit], d[hit], t_min[hit], t_max[hit], jitter, terminate, bg
+            )
         R = o.shape[0]
-        missed_bg = None  # the missed rays see the background: the fixed colour or the environment
-        if self.environment is not None and hit.numel() < R:
+        missed_bg = background  # the missed rays see the background: given, environment or fixed
+        if missed_bg is None and self.environment is not None and hit.numel() < R:
             missed_bg = self.environment(d)
         return tuple(
             {
@@ -389,14 +434,25 @@ class NeRFModel(Model):
                 generator=self.generator,
             )
 
+    def _random_background(self, data: TrainData) -> bool:
+        return trains_on_random_background(
+            self.cfg.random_background, data.alpha is not None, self.environment is not None
+        )
+
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         cfg = self.cfg
         self._update_occupancy(step)
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         batch = sample_rays(data, cfg.rays_per_batch, self.generator)
-        coarse, fine = self._render_rays(batch["origins"], batch["directions"], jitter=True)
-        mse_c = torch.mean((coarse["rgb"] - batch["rgb"]) ** 2)
-        mse_f = torch.mean((fine["rgb"] - batch["rgb"]) ** 2)
+        target, background = batch["rgb"], None
+        if self._random_background(data):
+            background = torch.rand(target.shape[0], 3, generator=self.generator).to(target)
+            target = recomposite(target, batch["alpha"], self.background, background)
+        coarse, fine = self._render_rays(
+            batch["origins"], batch["directions"], jitter=True, background=background
+        )
+        mse_c = torch.mean((coarse["rgb"] - target) ** 2)
+        mse_f = torch.mean((fine["rgb"] - target) ** 2)
         loss = mse_c + mse_f
         self.optimizer.zero_grad(set_to_none=True)
         if loss.requires_grad:  # no ray crossed an occupied cell: nothing to learn

@@ -29,8 +29,21 @@ from recon.cameras import Cameras
 from recon.fields.hashgrid import HashGrid
 from recon.fields.sh import num_sh_bases, sh_basis
 from recon.metrics.image import training_psnr
-from recon.models.background import EnvironmentMap, learns_background
-from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.background import (
+    EnvironmentMap,
+    check_random_background,
+    learns_background,
+    trains_on_random_background,
+)
+from recon.models.base import (
+    MethodSpec,
+    Model,
+    ResolutionPolicy,
+    SceneInfo,
+    TrainData,
+    recomposite,
+    register,
+)
 from recon.models.raymarch import (
     mlp,
     points_in_box,
@@ -78,6 +91,10 @@ class NGPConfig:
     )
     background: str = opt(
         "auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned"
+    )
+    random_background: str = opt(
+        "off",
+        "auto (on where the training photos have alpha and the background is the scene's colour) | on | off: train each ray on a random background colour",
     )
     occupancy_res: int = opt(64, "occupancy grid resolution (paper: 128)")
     occupancy_every: int = opt(16, "steps between occupancy-grid updates")
@@ -186,6 +203,7 @@ class NGPModel(Model):
         self.environment = (
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
+        check_random_background(cfg.random_background)
         self.distortion_weight = (
             cfg.distortion_weight if uses_distortion(cfg.distortion, scene.unbounded) else 0.0
         )
@@ -285,9 +303,12 @@ class NGPModel(Model):
             s_far - s_near
         )
 
-    def _render_rays_train(self, origins: Tensor, directions: Tensor):
+    def _render_rays_train(
+        self, origins: Tensor, directions: Tensor, background: Tensor | None = None
+    ):
         """Occupied samples, early termination, and the field with gradients on the survivors
-        (colour and compositing see only the samples with T >= eps).
+        (colour and compositing see only the samples with T >= eps), composited on
+        `background` (R, 3) (None: `background_colour`).
         -> (VolumeRender, and the rendered packed samples' ray_indices, t_starts, t_ends).
         Two ways to the same samples, values and gradients (the twin in `tests/test_ngp.py`),
         chosen by the fraction of evaluated densities the previous step kept: while most survive
@@ -308,8 +329,13 @@ class NGPModel(Model):
             ri, t0, t1, sigma, geo = ri[keep], t0[keep], t1[keep], sigma[keep], geo[keep]
         self._kept_fraction = ri.shape[0] / max(evaluated, 1)
         rgb = self.field.color(geo, self.field.encode_directions(directions)[ri])
-        bg = self.background_colour(directions)
+        bg = self.background_colour(directions) if background is None else background
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], bg), ri, t0, t1
+
+    def _random_background(self, data: TrainData) -> bool:
+        return trains_on_random_background(
+            self.cfg.random_background, data.alpha is not None, self.environment is not None
+        )
 
     @torch.no_grad()
     def _render_rays_eval(self, origins: Tensor, directions: Tensor):
@@ -338,9 +364,13 @@ class NGPModel(Model):
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"])
+        target, background = batch["rgb"], None
+        if self._random_background(data):
+            background = torch.rand(n_rays, 3, generator=self.generator).to(target)
+            target = recomposite(target, batch["alpha"], self.background, background)
+        out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"], background)
         n_samples = ri.shape[0]
-        mse = torch.mean((out.rgb - batch["rgb"]) ** 2)
+        mse = torch.mean((out.rgb - target) ** 2)
         loss = mse
         if self.distortion_weight > 0:
             s0, s1 = self.normalized_distance(t0), self.normalized_distance(t1)

@@ -45,7 +45,12 @@ from recon.cameras import Cameras
 from recon.fields.sdf import SDFField, eikonal_loss, sdf_and_gradient
 from recon.fields.sh import num_sh_bases, sh_basis
 from recon.metrics.image import training_psnr
-from recon.models.background import EnvironmentMap, learns_background
+from recon.models.background import (
+    EnvironmentMap,
+    check_random_background,
+    learns_background,
+    trains_on_random_background,
+)
 from recon.models.base import (
     MethodSpec,
     Model,
@@ -196,10 +201,7 @@ class SDFModel(Model):
         self.environment = (
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
-        if cfg.random_background not in ("auto", "on", "off"):
-            raise ValueError(
-                f"random_background must be auto, on or off, got {cfg.random_background!r}"
-            )
+        check_random_background(cfg.random_background)
         if cfg.mask_weight < 0:
             raise ValueError(f"mask_weight must be >= 0, got {cfg.mask_weight}")
         self.box_scene = replace(scene, unbounded=False)  # the field ends at the box
@@ -316,15 +318,8 @@ class SDFModel(Model):
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], bg), grad
 
     def _random_background(self, data: TrainData) -> bool:
-        """`random_background` for these training data: auto is on where they have alpha and
-        the model composites on the scene's colour (not a learned environment)."""
-        mode = self.cfg.random_background
-        if mode == "on" and (data.alpha is None or self.environment is not None):
-            raise ValueError(
-                "random_background=on needs training photos with alpha and the scene's background"
-            )
-        return mode == "on" or (
-            mode == "auto" and data.alpha is not None and self.environment is None
+        return trains_on_random_background(
+            self.cfg.random_background, data.alpha is not None, self.environment is not None
         )
 
     # ---- Model interface ---------------------------------------------------------------------
