@@ -95,3 +95,40 @@ def test_training_on_random_backgrounds_where_the_photos_have_alpha(build):
     assert not build(info, "off")._random_background(with_alpha)
     with pytest.raises(ValueError, match="must be auto, on or off"):
         build(info, "sometimes")
+
+
+def test_the_outer_volume_starts_behind_the_box_and_falls_back_to_its_environment():
+    """Rays that hit the box start at its exit, rays that miss it at their closest approach to
+    its centre; with no density out there a ray sees exactly the environment map, and the
+    colour is differentiable in both the field and the map."""
+    from recon.models.background import OuterVolume
+
+    aabb = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    outer = OuterVolume(aabb, near=0.1, far=100.0, n_samples=8)
+    o = torch.tensor([[0.0, 0.0, -5.0], [3.0, 0.0, -5.0]])
+    d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    start = outer.start(o, d, torch.tensor([6.0, 0.0]), torch.tensor([True, False]))
+    torch.testing.assert_close(start, torch.tensor([6.0, 5.0]))  # exit z = 1; closest at z = 0
+    rgb = outer(o, d, start, jitter=False)
+    assert rgb.shape == (2, 3) and ((rgb > 0) & (rgb < 1)).all()
+    rgb.sum().backward()
+    assert outer.grid.table.grad.abs().sum() > 0
+    assert outer.environment.net[2].weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        outer.density_mlp[-1].bias[0] = -60.0  # sigma = exp(-60): empty
+        torch.testing.assert_close(outer(o, d, start, jitter=False), outer.environment(d))
+
+
+def test_sdf_with_an_outer_volume_trains_and_renders():
+    from recon.models.sdf import SDFConfig, SDFModel
+
+    data, info, _ = sphere_scene(n_cams=2, size=12)
+    cfg = SDFConfig(outer_volume="on", n_levels=4, log2_table_size=12, n_max=64, rays_per_batch=64)
+    model = SDFModel(cfg, info)
+    assert model.outer is not None and model.environment is None
+    assert math.isfinite(model.train_step(data, 0)["loss"])
+    assert model.outer.grid.table.grad is not None  # the backdrop is learnt with the object
+    out = model.render(data.cameras[0])
+    assert out["rgb"].shape == (12, 12, 3) and torch.isfinite(out["rgb"]).all()
+    with pytest.raises(ValueError, match="outer_volume must be on or off"):
+        SDFModel(replace(cfg, outer_volume="auto"), info)

@@ -47,6 +47,7 @@ from recon.fields.sh import num_sh_bases, sh_basis
 from recon.metrics.image import training_psnr
 from recon.models.background import (
     EnvironmentMap,
+    OuterVolume,
     check_random_background,
     learns_background,
     trains_on_random_background,
@@ -119,6 +120,10 @@ class SDFConfig:
     max_samples_per_ray: int = opt(1024, "at most this many marched samples per ray (0 = no cap)")
     background: str = opt(
         "auto", "auto (learned for unbounded scenes) | scene (the capture's colour) | learned"
+    )
+    outer_volume: str = opt(
+        "off",
+        "on: model what lies behind the box (a real backdrop) with a small hash-grid field over the contracted space, on an environment map (NeRF++'s outer field) | off",
     )
     random_background: str = opt(
         "off",
@@ -202,6 +207,11 @@ class SDFModel(Model):
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
         check_random_background(cfg.random_background)
+        if cfg.outer_volume not in ("on", "off"):
+            raise ValueError(f"outer_volume must be on or off, got {cfg.outer_volume!r}")
+        self.outer = None
+        if cfg.outer_volume == "on":  # it carries its own environment map
+            self.outer, self.environment = OuterVolume(self.aabb, scene.near, scene.far), None
         if cfg.mask_weight < 0:
             raise ValueError(f"mask_weight must be >= 0, got {cfg.mask_weight}")
         self.box_scene = replace(scene, unbounded=False)  # the field ends at the box
@@ -211,8 +221,9 @@ class SDFModel(Model):
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.n_rays = cfg.rays_per_batch
         nets = [*self.field.parameters(), *self.color_mlp.parameters()]
-        if self.environment is not None:
-            nets += list(self.environment.parameters())
+        for extra in (self.environment, self.outer):
+            if extra is not None:
+                nets += list(extra.parameters())
         grid = [self.field.grid.table]
         self.optimizer = torch.optim.Adam(
             [
@@ -314,12 +325,25 @@ class SDFModel(Model):
         sigma = volsdf_density(sdf, self.beta()) / self.half_size
         dir_enc = sh_basis(self.cfg.sh_degree, directions)[ri]
         rgb = self._radiance(feature, grad, dir_enc)
-        bg = self.background_colour(directions) if background is None else background
+        bg = background
+        if bg is None:
+            bg = self._behind_box(origins, directions, training)
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], bg), grad
+
+    def _behind_box(self, origins: Tensor, directions: Tensor, training: bool) -> Tensor:
+        """What each ray (R,) sees behind the box: the outer volume's colour (R, 3) when it is
+        on, else `background_colour`."""
+        if self.outer is None:
+            return self.background_colour(directions)
+        t_min, t_max = ray_bounds(self.box_scene, origins, directions)
+        t_start = self.outer.start(origins, directions, t_max, t_max > t_min)
+        return self.outer(origins, directions, t_start, training, self.generator)
 
     def _random_background(self, data: TrainData) -> bool:
         return trains_on_random_background(
-            self.cfg.random_background, data.alpha is not None, self.environment is not None
+            self.cfg.random_background,
+            data.alpha is not None,
+            self.environment is not None or self.outer is not None,
         )
 
     # ---- Model interface ---------------------------------------------------------------------
