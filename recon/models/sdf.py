@@ -20,7 +20,11 @@ the box; grad f is exact (the chain rule through the MLP and the hash grid's ana
 Jacobian, `recon.fields.sdf`).
 
 An unbounded capture keeps the field in the scene box and learns what lies beyond it as an
-environment map of the view direction (`recon.models.background`), composited behind.
+environment map of the view direction (`recon.models.background`), composited behind. With
+`outer_volume=on` what lies behind the box is a volume instead (`OuterVolume`: NeRF++'s outer
+field on a contracted hash grid, then the environment map): a real backdrop at a finite
+distance, such as the board and cables behind the walnut ring, is not a function of the
+direction alone.
 
 Where the training photos have alpha (a synthetic capture), two options say that a transparent
 pixel's ray must stay empty, which a fixed white background alone does not (an SDF may close
