@@ -129,6 +129,7 @@ class SDFConfig:
         "off",
         "on: model what lies behind the box (a real backdrop) with a small hash-grid field over the contracted space, on an environment map (NeRF++'s outer field) | off",
     )
+    outer_n_max: int = opt(256, "finest resolution of the outer volume's hash grid")
     random_background: str = opt(
         "off",
         "auto (on where the training photos have alpha and the background is the scene's colour) | on | off: train each ray on a random background colour",
@@ -215,7 +216,10 @@ class SDFModel(Model):
             raise ValueError(f"outer_volume must be on or off, got {cfg.outer_volume!r}")
         self.outer = None
         if cfg.outer_volume == "on":  # it carries its own environment map
-            self.outer, self.environment = OuterVolume(self.aabb, scene.near, scene.far), None
+            self.outer, self.environment = (
+                OuterVolume(self.aabb, scene.near, scene.far, n_max=cfg.outer_n_max),
+                None,
+            )
         if cfg.mask_weight < 0:
             raise ValueError(f"mask_weight must be >= 0, got {cfg.mask_weight}")
         self.box_scene = replace(scene, unbounded=False)  # the field ends at the box
