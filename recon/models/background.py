@@ -116,11 +116,11 @@ class OuterVolume(nn.Module):
         jitter: bool,
         generator: torch.Generator | None = None,
     ) -> Tensor:
+        """t_start (R,) > 0: where each ray's samples begin (`start`)."""
         R, S = origins.shape[0], self.n_samples
-        near = t_start.clamp_min(self.near)
-        far = torch.maximum(near * 1.0001, torch.full_like(near, self.far))
+        far = torch.maximum(t_start * 1.0001, torch.full_like(t_start, self.far))
         inv = torch.reciprocal
-        t0, t1 = spaced_intervals(near, far, S, jitter, inv, inv, generator)  # (R, S)
+        t0, t1 = spaced_intervals(t_start, far, S, jitter, inv, inv, generator)  # (R, S)
         x = origins[:, None] + (0.5 * (t0 + t1))[..., None] * directions[:, None]
         h = self.density_mlp(self.grid(scene_to_unit_cube(x.reshape(-1, 3), self.aabb, True)))
         dir_enc = sh_basis(self.sh_degree, directions)

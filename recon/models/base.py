@@ -122,6 +122,17 @@ def recomposite(rgb: Tensor, alpha: Tensor, old: Tensor, new: Tensor) -> Tensor:
     return rgb + (1.0 - alpha)[:, None] * (new - old)
 
 
+def on_random_background(
+    batch: dict[str, Tensor], old: Tensor, generator: torch.Generator
+) -> tuple[Tensor, Tensor]:
+    """A training batch (`TrainData.rays_at`, with "alpha") moved onto one random colour per ray
+    (Instant-NGP's training of synthetic scenes) -> (targets (N, 3), background colours (N, 3)):
+    the model composites its rays on the second and is compared with the first."""
+    target = batch["rgb"]
+    new = torch.rand(target.shape[0], 3, generator=generator).to(target)
+    return recomposite(target, batch["alpha"], old, new), new
+
+
 class Model(nn.Module):
     """A trainable scene. Subclasses implement the four methods below.
 

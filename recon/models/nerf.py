@@ -46,7 +46,7 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
-    recomposite,
+    on_random_background,
     register,
 )
 from recon.models.raymarch import (
@@ -446,8 +446,7 @@ class NeRFModel(Model):
         batch = sample_rays(data, cfg.rays_per_batch, self.generator)
         target, background = batch["rgb"], None
         if self._random_background(data):
-            background = torch.rand(target.shape[0], 3, generator=self.generator).to(target)
-            target = recomposite(target, batch["alpha"], self.background, background)
+            target, background = on_random_background(batch, self.background, self.generator)
         coarse, fine = self._render_rays(
             batch["origins"], batch["directions"], jitter=True, background=background
         )

@@ -41,7 +41,7 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
-    recomposite,
+    on_random_background,
     register,
 )
 from recon.models.raymarch import (
@@ -366,8 +366,7 @@ class NGPModel(Model):
         batch = sample_rays(data, n_rays, self.generator)
         target, background = batch["rgb"], None
         if self._random_background(data):
-            background = torch.rand(n_rays, 3, generator=self.generator).to(target)
-            target = recomposite(target, batch["alpha"], self.background, background)
+            target, background = on_random_background(batch, self.background, self.generator)
         out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"], background)
         n_samples = ri.shape[0]
         mse = torch.mean((out.rgb - target) ** 2)

@@ -62,7 +62,7 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
-    recomposite,
+    on_random_background,
     register,
 )
 from recon.models.raymarch import mlp, points_in_box, ray_bounds, render_image, sample_rays
@@ -383,8 +383,7 @@ class SDFModel(Model):
         batch = sample_rays(data, n_rays, self.generator)
         target, background = batch["rgb"], None
         if self._random_background(data):
-            background = torch.rand(n_rays, 3, generator=self.generator).to(target)
-            target = recomposite(target, batch["alpha"], self.background, background)
+            target, background = on_random_background(batch, self.background, self.generator)
         out, grad = self._render_rays(batch["origins"], batch["directions"], True, background)
         mse = torch.mean((out.rgb - target) ** 2)
         mask = out.acc.new_zeros(())
