@@ -45,6 +45,7 @@ from recon.gaussians.init import (
     sample_in_shell,
     uses_random_init,
 )
+from recon.gaussians.mip_filter import sampling_intervals, smoothed
 from recon.gaussians.optim import keep_rows, make_adam
 from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.render import ProjectedSplats, composite_rgb, composite_rgbd, project_splats
@@ -182,6 +183,10 @@ class GaussiansConfig:
     pose_release_ratio: float = opt(
         6.0,
         "after the probation only cameras whose mean pose gradient is more than this many times the median camera's are refined; the others keep their given poses (0 = refine every camera, no probation)",
+    )
+    filter_3d: float = opt(
+        0.0,
+        "Mip-Splatting's 3D smoothing filter: each Gaussian convolved with an isotropic one of this many squared training sampling intervals (0 = off; the paper's 0.2)",
     )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
@@ -332,6 +337,8 @@ class GaussianModel(Model):
         self.register_buffer("background", scene.background.float().clone())
         self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
+        # (G,) each Gaussian's finest training sampling interval (filter_3d > 0; `_update_filter`)
+        self.register_buffer("filter_intervals", torch.zeros(0))
         self._aabb = scene.aabb.float().clone()
         self._unbounded = bool(scene.unbounded)
         self._min_sh_degree = 0  # a PLY start keeps the SH degrees it already has
@@ -397,11 +404,33 @@ class GaussianModel(Model):
         return self.params["means"].shape[0]
 
     def gaussians(self) -> dict[str, Tensor]:
-        """The attribute tensors `render.project_splats` takes."""
-        return dict(self.params.items())
+        """The attribute tensors `render.project_splats` takes: the parameters, with filter_3d
+        their scales and opacities after the 3D smoothing filter (`mip_filter.smoothed`)."""
+        g = dict(self.params.items())
+        if self.config.filter_3d > 0 and len(self.filter_intervals) == self.num_gaussians:
+            g["log_scales"], g["opacity_logits"] = smoothed(
+                g["log_scales"], g["opacity_logits"], self.filter_intervals, self.config.filter_3d
+            )
+        return g
+
+    @torch.no_grad()
+    def _update_filter(self, cameras: Cameras, step: int | None = None) -> None:
+        """filter_3d: the sampling intervals of the Gaussians in the training `cameras` when
+        Gaussians were added or removed, and after every densify_interval-th `step` (as
+        Mip-Splatting recomputes its filter every 100 steps)."""
+        if self.config.filter_3d <= 0:
+            return
+        stale = len(self.filter_intervals) != self.num_gaussians
+        due = step is not None and (step + 1) % max(self.config.densify_interval, 1) == 0
+        if stale or due:
+            means = self.params["means"].detach()
+            self.filter_intervals = sampling_intervals(
+                means, cameras.to(means.device), near=self.config.near_plane
+            )
 
     def splats(self) -> dict:
-        p = {k: v.detach().cpu().numpy() for k, v in self.params.items()}
+        """The Gaussians as rendered (filter_3d baked in), as numpy arrays."""
+        p = {k: v.detach().cpu().numpy() for k, v in self.gaussians().items()}
         return {
             "means": p["means"],
             "quats": p["quats"],
@@ -418,6 +447,7 @@ class GaussianModel(Model):
         view = view_for_step(step, len(data), c.seed)
         short_side = min(data.images.shape[1:3])
         level = data.downsampled(c2f_factor(step, c.c2f_factor, c.c2f_interval, short_side))
+        self._update_filter(self.train_cameras(data.cameras))  # first step, or resumed
         with record_function("3dgs.project"):
             splats = project_splats(
                 self.gaussians(),
@@ -442,10 +472,12 @@ class GaussianModel(Model):
             self._appearance_step()
         with record_function("3dgs.densify"):
             self._densify(splats, abs_grad, step, extent)
+            self._update_filter(self.train_cameras(data.cameras), step)
             # only where densification ran (not in a run too short to densify)
             ending = step + 1 == self.strategy.stop > self.strategy.start
             if ending and self.prune_fraction > 0:
                 self._prune_by_contribution(data)
+                self._update_filter(self.train_cameras(data.cameras))
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
         return {
@@ -655,6 +687,11 @@ class GaussianModel(Model):
             saved = state_dict.get(f"params.{name}")
             if saved is not None and saved.shape != p.shape:
                 self.params[name] = nn.Parameter(p.new_empty(saved.shape))
+        saved = state_dict.get("filter_intervals")
+        if saved is not None:
+            self.filter_intervals = saved.new_empty(saved.shape)
+        else:  # saved before the filter existed: recomputed at the next training step
+            state_dict = {**state_dict, "filter_intervals": self.filter_intervals.new_zeros(0)}
         saved = state_dict.get("pose_correction.twists")
         if self.pose_correction is not None and saved is not None:  # sized at the first step
             self.pose_correction.resize(len(saved))
@@ -688,8 +725,8 @@ class GaussianModel(Model):
 
     @torch.no_grad()
     def export_ply(self, path) -> None:
-        """Write the Gaussians as an INRIA splat PLY (see `ply.py`)."""
-        p = {k: v.detach().cpu() for k, v in self.params.items()}
+        """Write the Gaussians as rendered (filter_3d baked in) as an INRIA splat PLY."""
+        p = {k: v.detach().cpu() for k, v in self.gaussians().items()}
         sh = torch.cat([p["sh_dc"], p["sh_rest"]], 1).numpy()
         write_splat_ply(
             path,
