@@ -1,5 +1,5 @@
 """The 3D smoothing filter of Mip-Splatting (Yu et al. 2024, "Mip-Splatting: Alias-free 3D
-Gaussian Splatting", Sec. 5.1, Eqs. 7-10).
+Gaussian Splatting", Sec. 5.1, Eqs. 8-10).
 
 A training camera that sees a point at depth d samples the scene there every d / f world units
 (f the focal length in pixels), so no detail finer than the densest such sampling over the
@@ -24,9 +24,11 @@ def sampling_intervals(
     means: Tensor, cameras: Cameras, margin: float = 0.15, near: float = 0.01
 ) -> Tensor:
     """means (G, 3) world, C `cameras` -> T (G,): the smallest z / fx over the cameras whose
-    image, widened by `margin` of its size on each side, holds the projected mean at z > `near` (the Gaussian's finest training
-    sampling interval, Mip-Splatting Eq. 8). A mean no camera sees takes the largest interval
-    of those seen (as the paper's code does); with none seen at all, ones."""
+    image, widened by `margin` of its size on each side, holds the projected mean at
+    z > `near` (the Gaussian's finest training sampling interval, Mip-Splatting Eq. 8). A mean
+    no camera sees takes the largest interval of those seen (as the paper's code does); with
+    none seen at all, ones. Example: cameras 2 and 4 units in front of a point, fx = 100 ->
+    T = 0.02."""
     big = torch.finfo(means.dtype).max
     best = torch.full(means.shape[:1], big, dtype=means.dtype, device=means.device)
     sizes = zip(cameras.width.tolist(), cameras.height.tolist(), strict=True)

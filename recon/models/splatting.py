@@ -186,7 +186,7 @@ class GaussiansConfig:
     )
     filter_3d: float = opt(
         0.0,
-        "Mip-Splatting's 3D smoothing filter: each Gaussian convolved with an isotropic one of this many squared training sampling intervals (0 = off; the paper's 0.2)",
+        "Mip-Splatting's 3D smoothing filter: each Gaussian convolved with an isotropic one of this many squared training sampling intervals (0 = off; the paper's 0.2). Exports carry it baked in, so an init_ply from one should train with 0",
     )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
