@@ -122,13 +122,16 @@ def recomposite(rgb: Tensor, alpha: Tensor, old: Tensor, new: Tensor) -> Tensor:
     return rgb + (1.0 - alpha)[:, None] * (new - old)
 
 
-def on_random_background(
-    batch: dict[str, Tensor], old: Tensor, generator: torch.Generator
-) -> tuple[Tensor, Tensor]:
-    """A training batch (`TrainData.rays_at`, with "alpha") moved onto one random colour per ray
-    (Instant-NGP's training of synthetic scenes) -> (targets (N, 3), background colours (N, 3)):
-    the model composites its rays on the second and is compared with the first."""
+def training_targets(
+    batch: dict[str, Tensor], random_background: bool, old: Tensor, generator: torch.Generator
+) -> tuple[Tensor, Tensor | None]:
+    """A training batch's targets (N, 3) and the background colours (N, 3) its rays composite
+    on (None: the model's own). With `random_background` (Instant-NGP's training of synthetic
+    scenes) each ray draws one random colour and its target (`TrainData.rays_at`, with "alpha")
+    is moved from `old` onto it (`recomposite`); else the targets are the batch's rgb."""
     target = batch["rgb"]
+    if not random_background:
+        return target, None
     new = torch.rand(target.shape[0], 3, generator=generator).to(target)
     return recomposite(target, batch["alpha"], old, new), new
 

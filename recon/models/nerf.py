@@ -46,8 +46,8 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
-    on_random_background,
     register,
+    training_targets,
 )
 from recon.models.raymarch import (
     mlp_dtype,
@@ -444,9 +444,9 @@ class NeRFModel(Model):
         self._update_occupancy(step)
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         batch = sample_rays(data, cfg.rays_per_batch, self.generator)
-        target, background = batch["rgb"], None
-        if self._random_background(data):
-            target, background = on_random_background(batch, self.background, self.generator)
+        target, background = training_targets(
+            batch, self._random_background(data), self.background, self.generator
+        )
         coarse, fine = self._render_rays(
             batch["origins"], batch["directions"], jitter=True, background=background
         )

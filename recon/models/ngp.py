@@ -41,8 +41,8 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
-    on_random_background,
     register,
+    training_targets,
 )
 from recon.models.raymarch import (
     mlp,
@@ -364,9 +364,9 @@ class NGPModel(Model):
         set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        target, background = batch["rgb"], None
-        if self._random_background(data):
-            target, background = on_random_background(batch, self.background, self.generator)
+        target, background = training_targets(
+            batch, self._random_background(data), self.background, self.generator
+        )
         out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"], background)
         n_samples = ri.shape[0]
         mse = torch.mean((out.rgb - target) ** 2)

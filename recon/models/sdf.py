@@ -62,8 +62,8 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
-    on_random_background,
     register,
+    training_targets,
 )
 from recon.models.raymarch import mlp, points_in_box, ray_bounds, render_image, sample_rays
 from recon.models.schedules import (
@@ -381,9 +381,9 @@ class SDFModel(Model):
         set_lr(self.optimizer, lr, "mlp")
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        target, background = batch["rgb"], None
-        if self._random_background(data):
-            target, background = on_random_background(batch, self.background, self.generator)
+        target, background = training_targets(
+            batch, self._random_background(data), self.background, self.generator
+        )
         out, grad = self._render_rays(batch["origins"], batch["directions"], True, background)
         mse = torch.mean((out.rgb - target) ** 2)
         mask = out.acc.new_zeros(())

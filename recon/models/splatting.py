@@ -414,19 +414,18 @@ class GaussianModel(Model):
         return g
 
     @torch.no_grad()
-    def _update_filter(self, cameras: Cameras, step: int | None = None) -> None:
-        """filter_3d: the sampling intervals of the Gaussians in the training `cameras` when
-        Gaussians were added or removed, and after every densify_interval-th `step` (as
-        Mip-Splatting recomputes its filter every 100 steps)."""
+    def _update_filter(self, data: TrainData, step: int | None = None) -> None:
+        """filter_3d: the sampling intervals of the Gaussians in the training cameras (as the
+        model sees them: `train_cameras`) when Gaussians were added or removed, and after every
+        densify_interval-th `step` (as Mip-Splatting recomputes its filter every 100 steps)."""
         if self.config.filter_3d <= 0:
             return
         stale = len(self.filter_intervals) != self.num_gaussians
         due = step is not None and (step + 1) % max(self.config.densify_interval, 1) == 0
         if stale or due:
             means = self.params["means"].detach()
-            self.filter_intervals = sampling_intervals(
-                means, cameras.to(means.device), near=self.config.near_plane
-            )
+            cameras = self.train_cameras(data.cameras).to(means.device)
+            self.filter_intervals = sampling_intervals(means, cameras, near=self.config.near_plane)
 
     def splats(self) -> dict:
         """The Gaussians as rendered (filter_3d baked in), as numpy arrays."""
@@ -447,7 +446,7 @@ class GaussianModel(Model):
         view = view_for_step(step, len(data), c.seed)
         short_side = min(data.images.shape[1:3])
         level = data.downsampled(c2f_factor(step, c.c2f_factor, c.c2f_interval, short_side))
-        self._update_filter(self.train_cameras(data.cameras))  # first step, or resumed
+        self._update_filter(data)  # first step, or resumed
         with record_function("3dgs.project"):
             splats = project_splats(
                 self.gaussians(),
@@ -472,12 +471,12 @@ class GaussianModel(Model):
             self._appearance_step()
         with record_function("3dgs.densify"):
             self._densify(splats, abs_grad, step, extent)
-            self._update_filter(self.train_cameras(data.cameras), step)
+            self._update_filter(data, step)
             # only where densification ran (not in a run too short to densify)
             ending = step + 1 == self.strategy.stop > self.strategy.start
             if ending and self.prune_fraction > 0:
                 self._prune_by_contribution(data)
-                self._update_filter(self.train_cameras(data.cameras))
+                self._update_filter(data)
         with torch.no_grad():
             mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
         return {
