@@ -34,7 +34,7 @@ from torch.profiler import record_function
 
 from recon.cameras import Cameras
 from recon.cameras.pose_refine import PoseCorrection
-from recon.gaussians import densify
+from recon.gaussians import densify, mcmc
 from recon.gaussians.coarse_to_fine import c2f_factor
 from recon.gaussians.contribution import contributions, least_contributing
 from recon.gaussians.init import (
@@ -75,6 +75,7 @@ SCHEDULE_FRACTIONS = {
     "densify_stop": 0.7,
     "opacity_reset_interval": 0.35,
     "sh_degree_interval": 0.2,
+    "relocate_stop": 0.85,
 }
 
 
@@ -149,6 +150,15 @@ class GaussiansConfig:
     densify_abs_grad_threshold: float = opt(
         0.0006, "the densify threshold when densifying by absolute gradients"
     )
+    densify_mode: str = opt(
+        "adc",
+        "how the Gaussian count is controlled: adc (clone, split, prune; Kerbl et al.) | mcmc (relocation of dead Gaussians, growth to max_gaussians, position noise; Kheradmand et al.) | auto (mcmc for unbounded captures)",
+    )
+    mcmc_growth: float = opt(0.05, "mcmc: each refinement adds this fraction of the count")
+    mcmc_noise_lr: float = opt(5e5, "mcmc: the position noise's scale, times the means lr")
+    mcmc_opacity_reg: float = opt(0.01, "mcmc: weight of the L1 penalty on the opacities")
+    mcmc_scale_reg: float = opt(0.01, "mcmc: weight of the L1 penalty on the scales")
+    relocate_stop: int = opt(25_000, "mcmc: no relocation or growth from this step on")
     schedule_steps: int = opt(
         0,
         "the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)",
@@ -201,6 +211,7 @@ PRESETS = {
         "lr_decay_steps": 5000,
         "densify_start": 100,
         "densify_stop": 2000,
+        "relocate_stop": 2500,  # mcmc: the paper's 25 k of 30 k steps, at default_steps
         "densify_interval": 100,
         "opacity_reset_interval": 1000,
         "max_gaussians": 200_000,
@@ -276,10 +287,10 @@ def prune_fraction(config: GaussiansConfig, scene: SceneInfo) -> float:
     Measured at 10 min (bench/results/3dgs_prune_contribution.md): lego-200 keeps 28.3 k
     Gaussians instead of 56.7 k at 33.50 against 33.53 dB (LPIPS 0.0104 both), but fox-real
     loses 0.43 dB (31.99 against 32.43): its short runs leave too few steps to refill the
-    background."""
+    background. With densify_mode mcmc, auto is 0: max_gaussians is already the budget."""
     if config.prune_contribution != -1.0:
         return config.prune_contribution
-    return 0.0 if scene.unbounded else 0.5
+    return 0.0 if scene.unbounded or uses_mcmc(config, bool(scene.unbounded)) else 0.5
 
 
 def uses_appearance(config: GaussiansConfig, scene: SceneInfo) -> bool:
@@ -302,7 +313,27 @@ def uses_abs_grad(config: GaussiansConfig, unbounded: bool) -> bool:
     return on_off_auto(config.densify_abs_grad, "densify_abs_grad", unbounded)
 
 
-def densify_strategy(config: GaussiansConfig, unbounded: bool) -> densify.DensifyStrategy:
+def uses_mcmc(config: GaussiansConfig, unbounded: bool) -> bool:
+    """densify_mode adc | mcmc, or auto: mcmc for unbounded captures."""
+    modes = {"adc": False, "mcmc": True, "auto": unbounded}
+    if config.densify_mode not in modes:
+        raise ValueError(f"densify_mode must be adc, mcmc or auto, got {config.densify_mode!r}")
+    return modes[config.densify_mode]
+
+
+def densify_strategy(
+    config: GaussiansConfig, unbounded: bool
+) -> densify.DensifyStrategy | mcmc.McmcStrategy:
+    if uses_mcmc(config, unbounded):
+        return mcmc.McmcStrategy(
+            cap=config.max_gaussians,
+            growth=config.mcmc_growth,
+            min_opacity=config.prune_opacity,
+            noise_lr=config.mcmc_noise_lr,
+            start=config.densify_start,
+            stop=config.relocate_stop,
+            interval=config.densify_interval,
+        )
     abs_grad = uses_abs_grad(config, unbounded)
     return densify.DensifyStrategy(
         grad_threshold=(
@@ -455,13 +486,15 @@ class GaussianModel(Model):
                 c.near_plane,
             )
         splats.means2d.retain_grad()
-        abs_grad = torch.zeros_like(splats.means2d) if self.strategy.abs_grad else None
+        abs_grad = torch.zeros_like(splats.means2d) if self._abs_grad() else None
         with record_function("3dgs.rasterize"):
             rgb, _ = composite_rgb(splats, self.background, abs_grad)
         rgb = self._corrected(rgb, view, data.cameras)
         target = level.images[view]
         with record_function("3dgs.loss"):
             loss = photometric_loss(rgb, target, c.ssim_weight)
+            if isinstance(self.strategy, mcmc.McmcStrategy):
+                loss = loss + mcmc.regularizer(self.params, c.mcmc_opacity_reg, c.mcmc_scale_reg)
         self.optimizer.zero_grad(set_to_none=True)
         with record_function("3dgs.backward"):
             loss.backward()
@@ -624,14 +657,21 @@ class GaussianModel(Model):
         keep_rows(self.params, self.optimizer, ~drop.to(self.params["means"].device))
         self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
 
+    def _abs_grad(self) -> bool:
+        return isinstance(self.strategy, densify.DensifyStrategy) and self.strategy.abs_grad
+
     def _densify(
         self, splats: ProjectedSplats, abs_grad: Tensor | None, step: int, extent: float
     ) -> None:
+        gen = torch.Generator(device=self.params["means"].device)
+        gen.manual_seed(self.config.seed + 7919 * step)
+        if isinstance(self.strategy, mcmc.McmcStrategy):
+            lr = means_lr(self.config, step, extent)
+            mcmc.post_step(self.strategy, self.params, self.optimizer, step, lr, extent, gen)
+            return
         if step + 1 < self.strategy.stop:
             grad = splats.means2d.grad if abs_grad is None else abs_grad
             densify.accumulate(self.densify_state, grad, splats.radii, splats.width, splats.height)
-        gen = torch.Generator(device=self.params["means"].device)
-        gen.manual_seed(self.config.seed + 7919 * step)
         self.densify_state = densify.post_step(
             self.strategy, self.params, self.optimizer, self.densify_state, step, extent, gen
         )
