@@ -340,3 +340,15 @@ def test_abs_grad_densification_auto_threshold_and_accumulators():
     model = GaussianModel(config(densify_abs_grad="on", densify_abs_grad_threshold=0.0002), scene)
     counts = {model.train_step(data, step)["num_gaussians"] for step in range(45)}
     assert len(counts) > 1
+
+
+def test_antialiased_model_trains_and_renders_with_compensated_opacities():
+    scene, data = synthetic_scene(size=24)
+    model = GaussianModel(config(antialiased=True), scene)
+    for step in range(5):
+        assert math.isfinite(model.train_step(data, step)["loss"])
+    plain = GaussianModel(config(), scene)
+    plain.load_state_dict(model.state_dict())
+    out, ref = model.render(data.cameras[0]), plain.render(data.cameras[0])
+    assert (out["acc"] <= ref["acc"] + 1e-6).all()  # every splat a little less opaque
+    assert out["acc"].sum() < ref["acc"].sum()

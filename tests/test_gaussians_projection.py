@@ -10,6 +10,8 @@ import torch
 from recon.cameras.conventions import rotation_from_quat_wxyz
 from recon.fields.sh import C0
 from recon.gaussians.projection import (
+    DILATION,
+    antialias_compensation,
     conic_from_cov2d,
     covariance_3d,
     covariance_factor,
@@ -225,3 +227,37 @@ def test_sh_colour_is_offset_by_half_and_clamped_at_zero():
     assert colors[1].tolist() == [0.0, 0.5, 0.5]
     (g,) = torch.autograd.grad(colors.sum(), sh)
     assert g[1, 0, 0] == 0  # the clamp passes no gradient
+
+
+def test_antialias_compensation_worked_example_and_limits():
+    """Sigma = diag(0.3, 1.2) -> Sigma' = diag(0.6, 1.5), sqrt(0.36 / 0.9) = 0.63246; a splat
+    much larger than the dilation keeps its opacity, a point-like one loses it."""
+    conics = torch.tensor([[1 / 0.6, 0.0, 1 / 1.5], [1 / 1e4, 0, 1 / 1e4], [1 / 0.3, 0, 1 / 0.3]])
+    rho = antialias_compensation(conics.double())
+    assert rho[0].item() == pytest.approx(0.632456, abs=1e-6)
+    assert rho[1].item() == pytest.approx(1.0, abs=1e-4)
+    assert rho[2].item() < 1e-5
+
+
+def test_antialias_compensation_keeps_the_undilated_integral():
+    """Brute force: over a fine grid, rho exp(-x^T Sigma'^-1 x / 2) integrates to the
+    undilated 2 pi sqrt(det Sigma), for random anisotropic covariances."""
+    gen = torch.Generator().manual_seed(3)
+    for _ in range(4):
+        L = torch.randn(2, 2, generator=gen, dtype=F64) * 0.8
+        cov = L @ L.T + 0.02 * torch.eye(2, dtype=F64)
+        dilated = cov + DILATION * torch.eye(2, dtype=F64)
+        conic_m = torch.linalg.inv(dilated)
+        conic = torch.stack([conic_m[0, 0], conic_m[0, 1], conic_m[1, 1]])
+        rho = antialias_compensation(conic[None])[0]
+        x = torch.linspace(-15, 15, 1501, dtype=F64)
+        X, Y = torch.meshgrid(x, x, indexing="xy")
+        power = conic[0] * X * X + 2 * conic[1] * X * Y + conic[2] * Y * Y
+        integral = (rho * torch.exp(-0.5 * power)).sum() * (x[1] - x[0]) ** 2
+        expected = 2 * math.pi * torch.sqrt(torch.linalg.det(cov))
+        assert integral.item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_antialias_compensation_gradient():
+    conics = torch.tensor([[1.2, 0.3, 0.9], [0.5, -0.1, 2.0]], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(antialias_compensation, (conics,))

@@ -21,11 +21,16 @@ from recon.gaussians.render import project_splats
 
 
 def view_contributions(
-    gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int, near: float
+    gaussians: Mapping[str, Tensor],
+    camera: Cameras,
+    sh_degree: int,
+    near: float,
+    antialiased: bool = False,
 ) -> Tensor:
     """sum_p T_i(p) alpha_i(p) over the pixels of the single camera `camera`: (G,)."""
+    detached = {k: v.detach() for k, v in gaussians.items()}
     with torch.no_grad():
-        s = project_splats({k: v.detach() for k, v in gaussians.items()}, camera, sh_degree, near)
+        s = project_splats(detached, camera, sh_degree, near, antialiased)
     ones = torch.ones(len(s.opacities), 1, dtype=s.colors.dtype, requires_grad=True)
     with torch.enable_grad():
         image, _ = rasterize_features(
@@ -36,12 +41,17 @@ def view_contributions(
 
 
 def contributions(
-    gaussians: Mapping[str, Tensor], cameras: Cameras, sh_degree: int, near: float
+    gaussians: Mapping[str, Tensor],
+    cameras: Cameras,
+    sh_degree: int,
+    near: float,
+    antialiased: bool = False,
 ) -> Tensor:
     """C_i summed over the views `cameras`: (G,), float64."""
     total = torch.zeros(len(gaussians["means"]), dtype=torch.float64)
     for view in range(len(cameras)):
-        total += view_contributions(gaussians, cameras[view], sh_degree, near).double().cpu()
+        weights = view_contributions(gaussians, cameras[view], sh_degree, near, antialiased)
+        total += weights.double().cpu()
     return total
 
 

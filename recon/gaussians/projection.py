@@ -21,6 +21,19 @@ GUARD_BAND = 1.3
 QUAT_EPS = 1e-12
 
 
+def antialias_compensation(conics: Tensor, dilation: float = DILATION) -> Tensor:
+    """conics (G, 3) = (A, B, C) of Sigma' = Sigma + dilation I -> (G,) sqrt(det Sigma /
+    det Sigma'), the opacity factor that keeps a dilated splat's integral that of the
+    undilated one (the 2D filter's normalisation of Yu et al. 2024, "Mip-Splatting", eq. 12;
+    gsplat's "antialiased" mode with the 0.3 dilation). det Sigma / det Sigma' =
+    det(I - dilation conic) = 1 - dilation (A + C) + dilation^2 (A C - B^2), so no inverse is
+    needed. Example: Sigma = diag(0.3, 1.2) -> Sigma' = diag(0.6, 1.5) -> sqrt(0.36 / 0.9) =
+    0.63246. Splats far below a pixel fade instead of staying as bright as a pixel-sized one."""
+    A, B, C = conics.unbind(-1)
+    ratio = 1 - dilation * (A + C) + dilation * dilation * (A * C - B * B)
+    return torch.sqrt(ratio.clamp(1e-12, 1.0))
+
+
 def normalize_quats(quats: Tensor) -> Tensor:
     """q / max(|q|, eps).  (..., 4) -> (..., 4); a zero quaternion stays zero (-> R = I), no NaN."""
     sq = (quats * quats).sum(-1, keepdim=True)

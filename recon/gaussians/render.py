@@ -16,7 +16,7 @@ from torch import Tensor
 
 from recon.cameras import Cameras
 from recon.gaussians.project_fused import project_fused
-from recon.gaussians.projection import project_gaussians, sh_colors
+from recon.gaussians.projection import antialias_compensation, project_gaussians, sh_colors
 from recon.gaussians.rasterize import rasterize_features
 
 
@@ -35,14 +35,25 @@ class ProjectedSplats:
     height: int
 
 
+def splat_opacities(opacity_logits: Tensor, conics: Tensor, antialiased: bool) -> Tensor:
+    """sigmoid(logit) (G,), times `antialias_compensation(conics)` if antialiased."""
+    opacities = torch.sigmoid(opacity_logits)
+    return opacities * antialias_compensation(conics) if antialiased else opacities
+
+
 def project_splats(
-    gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int, near: float = 0.01
+    gaussians: Mapping[str, Tensor],
+    camera: Cameras,
+    sh_degree: int,
+    near: float = 0.01,
+    antialiased: bool = False,
 ) -> ProjectedSplats:
     """Project G Gaussians into the single camera `camera` (len 1), colours from SH of
-    `sh_degree` seen from its centre, opacity = sigmoid(logit). CPU tensors take the fused
-    numba pass (`project_fused`), other devices its pure-torch twin (`project_splats_torch`)."""
+    `sh_degree` seen from its centre, opacity = sigmoid(logit) (`splat_opacities`). CPU
+    tensors take the fused numba pass (`project_fused`), other devices its pure-torch twin
+    (`project_splats_torch`)."""
     if gaussians["means"].device.type != "cpu":
-        return project_splats_torch(gaussians, camera, sh_degree, near)
+        return project_splats_torch(gaussians, camera, sh_degree, near, antialiased)
     g, dtype = gaussians, gaussians["means"].dtype
     W, H = int(camera.width[0]), int(camera.height[0])
     means2d, conics, depths, radii, colors = project_fused(
@@ -58,13 +69,16 @@ def project_splats(
         H,
         near,
     )
-    return ProjectedSplats(
-        means2d, conics, depths, radii, torch.sigmoid(g["opacity_logits"]), colors, W, H
-    )
+    opacities = splat_opacities(g["opacity_logits"], conics, antialiased)
+    return ProjectedSplats(means2d, conics, depths, radii, opacities, colors, W, H)
 
 
 def project_splats_torch(
-    gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int, near: float = 0.01
+    gaussians: Mapping[str, Tensor],
+    camera: Cameras,
+    sh_degree: int,
+    near: float = 0.01,
+    antialiased: bool = False,
 ) -> ProjectedSplats:
     """`project_splats` in vectorised torch with autograd (any device)."""
     dtype = gaussians["means"].dtype
@@ -85,9 +99,8 @@ def project_splats_torch(
         sh = torch.cat([sh, gaussians["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
     center = camera.centers[0].to(dtype)
     colors = sh_colors(gaussians["means"], sh, sh_degree, center)
-    return ProjectedSplats(
-        means2d, conics, depths, radii, torch.sigmoid(gaussians["opacity_logits"]), colors, W, H
-    )
+    opacities = splat_opacities(gaussians["opacity_logits"], conics, antialiased)
+    return ProjectedSplats(means2d, conics, depths, radii, opacities, colors, W, H)
 
 
 def composite_rgb(

@@ -194,6 +194,10 @@ class GaussiansConfig:
         6.0,
         "after the probation only cameras whose mean pose gradient is more than this many times the median camera's are refined; the others keep their given poses (0 = refine every camera, no probation)",
     )
+    antialiased: bool = opt(
+        False,
+        "scale each splat's opacity by sqrt(det Sigma / det(Sigma + 0.3 I)) so the dilation keeps its integral (gsplat's antialiased mode, Mip-Splatting's 2D filter normalisation); other viewers render exports without it",
+    )
     filter_3d: float = opt(
         0.0,
         "Mip-Splatting's 3D smoothing filter: each Gaussian convolved with an isotropic one of this many squared training sampling intervals (0 = off; the paper's 0.2). Exports carry it baked in, so an init_ply from one should train with 0",
@@ -484,6 +488,7 @@ class GaussianModel(Model):
                 self._train_camera(level, view, step),
                 int(self.active_sh_degree),
                 c.near_plane,
+                c.antialiased,
             )
         splats.means2d.retain_grad()
         abs_grad = torch.zeros_like(splats.means2d) if self._abs_grad() else None
@@ -652,6 +657,7 @@ class GaussianModel(Model):
             self.train_cameras(data.cameras),
             int(self.active_sh_degree),
             self.config.near_plane,
+            self.config.antialiased,
         )
         drop = least_contributing(scores, self.prune_fraction)
         keep_rows(self.params, self.optimizer, ~drop.to(self.params["means"].device))
@@ -682,8 +688,10 @@ class GaussianModel(Model):
         The camera is used as given: no pose correction (see `train_cameras`). With appearance,
         rgb takes the colour correction of the nearest training photos (`models.appearance`)."""
         degree = int(self.active_sh_degree)
+        c = self.config
+        device = self.params["means"].device
         splats = project_splats(
-            self.gaussians(), camera.to(self.params["means"].device), degree, self.config.near_plane
+            self.gaussians(), camera.to(device), degree, c.near_plane, c.antialiased
         )
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
