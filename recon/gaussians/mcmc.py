@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from recon.gaussians.optim import MOMENTS, append_rows
+from recon.gaussians.optim import append_rows, zero_moment_rows
 from recon.gaussians.projection import rotation_from_quats
 
 NOISE_GATE_SHARPNESS = 100.0  # k of the noise gate sigmoid(-k (o - t))
@@ -114,15 +114,7 @@ def _share(strategy: McmcStrategy, params: nn.ParameterDict, optimizer, sources:
     logits = params["opacity_logits"]
     logits.data[sources] = torch.logit(opacity).reshape(-1, *logits.shape[1:]).to(logits)
     params["log_scales"].data[sources] = torch.log(scales)
-    _zero_moments(optimizer, sources)
-
-
-def _zero_moments(optimizer: torch.optim.Adam, rows: Tensor) -> None:
-    for group in optimizer.param_groups:
-        state = optimizer.state.get(group["params"][0], {})
-        for key in MOMENTS:
-            if key in state:
-                state[key][rows] = 0
+    zero_moment_rows(optimizer, sources)
 
 
 def _draw(opacity: Tensor, count: int, generator: torch.Generator | None) -> Tensor:
@@ -149,7 +141,7 @@ def relocate_dead(
     targets = dead.nonzero()[:, 0]
     for p in params.values():
         p.data[targets] = p.data[sources]
-    _zero_moments(optimizer, targets)
+    zero_moment_rows(optimizer, targets)
     return n_dead
 
 

@@ -72,3 +72,13 @@ def reset_rows(
     update_rows(
         params, optimizer, lambda _, x: value.to(x), lambda _, m: torch.zeros_like(m), names=[name]
     )
+
+
+def zero_moment_rows(optimizer: torch.optim.Adam, rows: Tensor) -> None:
+    """Zero the Adam moments of the given rows (indices or mask) of every attribute, in place:
+    rows whose parameters were overwritten (relocated Gaussians) restart their moments."""
+    for group in optimizer.param_groups:
+        state = optimizer.state.get(group["params"][0], {})
+        for key in MOMENTS:
+            if key in state:
+                state[key][rows] = 0
