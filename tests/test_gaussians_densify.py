@@ -61,6 +61,34 @@ def test_accumulate_uses_ndc_gradients_of_visible_gaussians():
     assert state["radii"].tolist() == pytest.approx([0.05, 0.1, 0.0])  # radius / max(W, H)
 
 
+def test_pixel_weights_average_over_views_by_screen_area():
+    """Pixel-GS's weighted mean sum_k m_k |g_k| / sum_k m_k, m_k = min(pi r_k^2, W H): one view
+    close by (radius 20 px, NDC gradient norm 3e-4) and three far away (2 px, 1e-4 each).
+    Per view the mean is (3 + 3 x 1) / 4 x 1e-4 = 1.5e-4, under a 2e-4 threshold; weighted it
+    is (400 x 3 + 3 x 4 x 1) / (400 + 12) x 1e-4 = 2.9417e-4, over it."""
+    W = H = 100
+    plain, weighted = densify.init_state(1), densify.init_state(1)
+    views = [(3e-4, 20.0), (1e-4, 2.0), (1e-4, 2.0), (1e-4, 2.0)]
+    for ndc, radius in views:
+        grad = torch.tensor([[ndc / (W / 2), 0.0]])  # pixel gradient with NDC norm `ndc`
+        r = torch.tensor([radius])
+        densify.accumulate(plain, grad, r, W, H)
+        densify.accumulate(weighted, grad, r, W, H, pixel_weights=True)
+    strategy = densify.DensifyStrategy(grad_threshold=2e-4)
+    mean = lambda st: float(st["grad2d"][0] / st["count"][0])  # noqa: E731
+    assert mean(plain) == pytest.approx(1.5e-4)
+    assert mean(weighted) == pytest.approx((400 * 3 + 12) / 412 * 1e-4)
+    assert not bool(densify._candidates(strategy, plain, 1)[0])
+    assert bool(densify._candidates(strategy, weighted, 1)[0])
+    # the area is clipped to the image: a Gaussian larger than the view weighs W H, not pi r^2
+    big = densify.init_state(1)
+    densify.accumulate(big, torch.tensor([[1.0, 0.0]]), torch.tensor([1000.0]), W, H, True)
+    assert float(big["count"][0]) == W * H
+    # invisible (radius 0) adds nothing either way
+    densify.accumulate(big, torch.tensor([[1.0, 0.0]]), torch.tensor([0.0]), W, H, True)
+    assert float(big["count"][0]) == W * H
+
+
 def test_clone_split_prune_keep_optimizer_state_consistent():
     params, optimizer, state = four_gaussians()
     old_moment = optimizer.state[params["means"]]["exp_avg"].clone()

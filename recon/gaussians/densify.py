@@ -13,10 +13,17 @@ per-pixel gradients, sum_p |dL_p/dmu'| componentwise (Ye et al. 2024, "AbsGS", e
 Gaussian that covers both sides of an edge or a texture gets gradients of opposite signs from
 its pixels, which cancel in dL/dmu' and leave it large and blurry; their absolute values do not
 cancel. The sum of absolute values is larger, hence the higher threshold (gsplat: 0.0008).
+
+With `pixel_weights` the mean over views is weighted by the Gaussian's screen area in each
+view (Zhang et al. 2024, "Pixel-GS": sum_k m_k |g_k| / sum_k m_k, m_k its pixels in view k;
+here m_k = pi r_k^2 from the 3-sigma screen radius, clipped to the image). A Gaussian that is
+large in the few views that see it from close by and small in the many that see it from afar
+is otherwise judged by the far views' small gradients and left large and blurry.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -46,6 +53,9 @@ class DensifyStrategy:
     abs_grad: bool = opt(
         False, "accumulate sum_p |dL_p/dmu'| (AbsGS) instead of |dL/dmu'|: ~4x the threshold"
     )
+    pixel_weights: bool = opt(
+        False, "average the gradient over views weighted by screen area (Pixel-GS), not per view"
+    )
 
 
 def init_state(n: int, device=None) -> dict[str, Tensor]:
@@ -56,20 +66,30 @@ def init_state(n: int, device=None) -> dict[str, Tensor]:
 
 @torch.no_grad()
 def accumulate(
-    state: dict[str, Tensor], grad_means2d: Tensor, radii: Tensor, width: int, height: int
+    state: dict[str, Tensor],
+    grad_means2d: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    pixel_weights: bool = False,
 ) -> None:
     """In place: for visible Gaussians (radius > 0) add |dL/dmu'_px * (W/2, H/2)|, count one
-    visible step and track max radius / max(W, H). grad_means2d (G, 2), radii (G,)."""
+    visible step and track max radius / max(W, H). grad_means2d (G, 2), radii (G,).
+    With `pixel_weights` both sums are weighted by the screen area min(pi r^2, W H) (px)."""
     visible = radii > 0
+    weight = visible.float()
+    if pixel_weights:
+        weight = torch.where(visible, (math.pi * radii.float() ** 2).clamp_max(width * height), 0.0)
     scale = grad_means2d.new_tensor([width / 2.0, height / 2.0])
-    state["grad2d"] += torch.where(visible, (grad_means2d * scale).norm(dim=-1), 0.0)
-    state["count"] += visible.float()
+    state["grad2d"] += weight * (grad_means2d * scale).norm(dim=-1)
+    state["count"] += weight
     state["radii"] = torch.maximum(state["radii"], radii / max(width, height))
 
 
 def _candidates(strategy: DensifyStrategy, state: dict[str, Tensor], n: int) -> Tensor:
     """(G,) bool: mean gradient >= threshold, capped to the top max_gaussians - n by gradient."""
-    mean_grad = state["grad2d"] / state["count"].clamp_min(1)
+    count = state["count"]
+    mean_grad = torch.where(count > 0, state["grad2d"] / count.clamp_min(1e-12), 0.0)
     chosen = mean_grad >= strategy.grad_threshold
     budget = max(strategy.max_gaussians - n, 0)
     if int(chosen.sum()) > budget:

@@ -150,6 +150,10 @@ class GaussiansConfig:
     densify_abs_grad_threshold: float = opt(
         0.0006, "the densify threshold when densifying by absolute gradients"
     )
+    densify_pixel_weights: bool = opt(
+        _DENSIFY.pixel_weights,
+        "average the densify gradient over views weighted by each view's screen area (Pixel-GS)",
+    )
     densify_mode: str = opt(
         "adc",
         "how the Gaussian count is controlled: adc (clone, split, prune; Kerbl et al.) | mcmc (relocation of dead Gaussians, growth to max_gaussians, position noise; Kheradmand et al.) | auto (mcmc for unbounded captures)",
@@ -354,6 +358,7 @@ def densify_strategy(
         max_gaussians=config.max_gaussians,
         clone_opacity_correction=config.clone_opacity_correction,
         abs_grad=abs_grad,
+        pixel_weights=config.densify_pixel_weights,
     )
 
 
@@ -677,7 +682,14 @@ class GaussianModel(Model):
             return
         if step + 1 < self.strategy.stop:
             grad = splats.means2d.grad if abs_grad is None else abs_grad
-            densify.accumulate(self.densify_state, grad, splats.radii, splats.width, splats.height)
+            densify.accumulate(
+                self.densify_state,
+                grad,
+                splats.radii,
+                splats.width,
+                splats.height,
+                self.strategy.pixel_weights,
+            )
         self.densify_state = densify.post_step(
             self.strategy, self.params, self.optimizer, self.densify_state, step, extent, gen
         )
