@@ -75,7 +75,7 @@ def test_pixel_weights_average_over_views_by_screen_area():
         densify.accumulate(plain, grad, r, W, H)
         densify.accumulate(weighted, grad, r, W, H, pixel_weights=True)
     strategy = densify.DensifyStrategy(grad_threshold=2e-4)
-    mean = lambda st: float(st["grad2d"][0] / st["count"][0])  # noqa: E731
+    mean = lambda st: float(st["grad2d"][0] / st["count"][0])
     assert mean(plain) == pytest.approx(1.5e-4)
     assert mean(weighted) == pytest.approx((400 * 3 + 12) / 412 * 1e-4)
     assert not bool(densify._candidates(strategy, plain, 1)[0])
