@@ -243,6 +243,36 @@ def test_3dgs_train_render_and_splat_export(trained):
         assert np.allclose(np.sort(back["means"][:, 0]), np.sort(means[:, 0]), atol=0.02)
         if size is not None:
             assert done["bytes"] == size
+    assert out["antialias_baked"] is False
+    # an antialiased run exports its opacities times their mean compensation over the
+    # training views (viewers do not compensate): never above the model's own, some below
+    recon_cli(
+        "train",
+        "-w",
+        str(trained),
+        "--method",
+        "3dgs",
+        "--run",
+        "aa",
+        "--steps",
+        "10",
+        "--eval-views",
+        "1",
+        "--set",
+        "init_points=500",
+        "--set",
+        "antialiased=true",
+    )
+    aa = json.loads(recon_cli("export", "-w", str(trained), "--run", "aa", "--json").stdout)
+    assert aa["antialias_baked"] is True
+    from recon.workspace import Workspace
+    from recon.workspace.runs import load_run
+
+    model = load_run(Workspace(trained), "aa")[0]
+    raw = model.params["opacity_logits"].detach().double().sigmoid().numpy().reshape(-1)
+    baked = 1 / (1 + np.exp(-read_splat_ply(aa["path"])["opacity_logits"].astype(np.float64)))
+    assert baked.shape == raw.shape
+    assert (baked <= raw + 1e-6).all() and (baked < raw - 1e-3).any()
     bad = recon_cli("export", "-w", str(trained), "--run", "3dgs", "--sh-degree", "4", check=False)
     assert bad.returncode == 2 and "sh-degree" in bad.stderr
     # the exported file seeds a new run through the CLI flag (round trip of the PLY format)

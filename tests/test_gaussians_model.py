@@ -10,7 +10,7 @@ import torch
 from recon.cameras import Cameras
 from recon.cameras.look_at import look_at
 from recon.fields.sh import C0
-from recon.gaussians.render import composite_rgb, project_splats
+from recon.gaussians.render import composite_rgb, mean_compensation, project_splats
 from recon.models.base import METHODS, SceneInfo, TrainData
 from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
 from recon.options import field_help
@@ -352,3 +352,23 @@ def test_antialiased_model_trains_and_renders_with_compensated_opacities():
     out, ref = model.render(data.cameras[0]), plain.render(data.cameras[0])
     assert (out["acc"] <= ref["acc"] + 1e-6).all()  # every splat a little less opaque
     assert out["acc"].sum() < ref["acc"].sum()
+
+
+def test_antialiased_splats_bake_the_mean_compensation_given_the_training_cameras():
+    """What `recon export` writes: sigmoid(logit') = sigmoid(logit) x mean_compensation over
+    the training cameras; without cameras, or for a model trained without antialiasing, the
+    opacities are the parameters'."""
+    scene, data = synthetic_scene(size=24)
+    model = GaussianModel(config(antialiased=True), scene)
+    for step in range(3):
+        model.train_step(data, step)
+    raw = model.splats()["opacity_logits"]
+    assert np.array_equal(raw, model.params["opacity_logits"].detach().numpy().reshape(-1))
+    baked = model.splats(data.cameras)["opacity_logits"]
+    comp = mean_compensation(model.gaussians(), data.cameras, model.config.near_plane).numpy()
+    sig = lambda x: 1 / (1 + np.exp(-x.astype(np.float64)))
+    assert np.allclose(sig(baked), sig(raw) * comp, atol=1e-6)
+    assert (comp < 1).any() and (comp <= 1).all()
+    plain = GaussianModel(config(), scene)
+    plain.load_state_dict(model.state_dict())
+    assert np.array_equal(plain.splats(data.cameras)["opacity_logits"], raw)

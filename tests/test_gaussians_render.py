@@ -9,7 +9,12 @@ from recon.cameras import Cameras
 from recon.gaussians.projection import antialias_compensation
 from recon.gaussians.rasterize import rasterize_features
 from recon.gaussians.rasterize_reference import rasterize_features_reference
-from recon.gaussians.render import composite_rgbd, project_splats, project_splats_torch
+from recon.gaussians.render import (
+    composite_rgbd,
+    mean_compensation,
+    project_splats,
+    project_splats_torch,
+)
 
 F64 = torch.float64
 
@@ -112,3 +117,33 @@ def test_antialiased_opacities_are_compensated_alike_on_both_paths():
             assert a is None or a.abs().max() == 0, name
             continue
         assert torch.allclose(a, b, atol=1e-9 * max(1.0, b.abs().max().item())), name
+
+
+def test_mean_compensation_averages_over_the_views_that_see_each_gaussian():
+    """Brute-force twin: per view the compensated / plain opacity of `project_splats`, averaged
+    over the views with radius > 0; a Gaussian behind every camera keeps 1. A view 4x farther
+    (focal length / 4) shrinks the splats, so its factors are smaller."""
+    g = random_gaussians(20, seed=6)
+    g["means"][0] = torch.tensor([0.0, 0.0, -10.0], dtype=F64)  # behind both cameras (z < 0)
+    near, far = camera(), camera(f=10.0)
+    cams = Cameras(
+        torch.cat([near.K, far.K]),
+        torch.cat([near.cam_from_world, far.cam_from_world]),
+        torch.cat([near.width, far.width]),
+        torch.cat([near.height, far.height]),
+    )
+    total, seen = torch.zeros(20, dtype=F64), torch.zeros(20, dtype=F64)
+    for view in range(2):
+        plain = project_splats(g, cams[view], 0)
+        aa = project_splats(g, cams[view], 0, antialiased=True)
+        visible = plain.radii > 0
+        total += torch.where(visible, aa.opacities / plain.opacities, 0.0)
+        seen += visible.double()
+    expected = torch.where(seen > 0, total / seen.clamp_min(1), 1.0)
+    got = mean_compensation(g, cams, 0.01)
+    assert torch.allclose(got, expected, atol=1e-12)
+    assert got[0] == 1.0 and seen[0] == 0
+    assert (got[1:][seen[1:] > 0] < 1).all()
+    only_near = mean_compensation(g, cams[0], 0.01)
+    both = seen == 2
+    assert both.sum() > 5 and (got[both] < only_near[both]).all()

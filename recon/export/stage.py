@@ -1,7 +1,8 @@
 """The `export` stage: the Gaussians of a run whose model `exports_splats`, in the world or the
 scene frame, in a format splat viewers open: the INRIA splat PLY (62 floats a Gaussian), the
 32-byte `.splat`, or PlayCanvas's compressed PLY (16 bytes a Gaussian plus 3 per SH
-coefficient kept); `sh_degree` drops the higher SH bands."""
+coefficient kept); `sh_degree` drops the higher SH bands. An antialiased run's opacities are written with
+their compensation averaged over the training views, since viewers do not compensate."""
 
 from __future__ import annotations
 
@@ -54,7 +55,13 @@ def export_splats(
             f"run '{run}' is a {run_doc['method']} run, which has no Gaussians to "
             "export (`recon export` writes the Gaussian splats of a 3dgs run)"
         )
-    g = model.splats()
+    cameras = None
+    if getattr(model.config, "antialiased", False):
+        # the compensation is a function of the view: bake its mean over the training views,
+        # at the resolution the run trained at (`GaussianModel.splats`)
+        level = ((run_doc.get("resolution") or {}).get("working") or {}).get("downscale", 1)
+        cameras = scene.cameras(scene.split("train"), "cpu", level)
+    g = model.splats(cameras)
     if frame == "world":
         sim = scene.scene_from_world
         g = gaussians_to_world(g, sim.scale, sim.R, sim.t)
@@ -73,6 +80,7 @@ def export_splats(
         "gaussians": len(g["means"]),
         "sh_degree": 0 if fmt == "splat" else degree,
         "frame": frame,
+        "antialias_baked": cameras is not None,
         "bytes": out.stat().st_size,
         "seconds": round(time.time() - t0, 3),
     }

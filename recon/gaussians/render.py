@@ -73,6 +73,23 @@ def project_splats(
     return ProjectedSplats(means2d, conics, depths, radii, opacities, colors, W, H)
 
 
+@torch.no_grad()
+def mean_compensation(gaussians: Mapping[str, Tensor], cameras: Cameras, near: float) -> Tensor:
+    """(G,) each Gaussian's `antialias_compensation` averaged over the views of `cameras` that
+    it projects into (radius > 0); 1 where none does. A viewer without the compensation (every
+    INRIA-style renderer) shows an antialiased model's splats at their raw opacity, too opaque
+    wherever they were sub-pixel in training; their opacity times this mean is the one opacity
+    that matches the training views on average (what `recon export` writes for such a model)."""
+    total = torch.zeros(len(gaussians["means"]), dtype=torch.float64)
+    seen = torch.zeros_like(total)
+    for view in range(len(cameras)):
+        s = project_splats(gaussians, cameras[view], 0, near)
+        visible = (s.radii > 0).cpu()
+        total += torch.where(visible, antialias_compensation(s.conics).double().cpu(), 0.0)
+        seen += visible.double()
+    return torch.where(seen > 0, total / seen.clamp_min(1), 1.0)
+
+
 def project_splats_torch(
     gaussians: Mapping[str, Tensor],
     camera: Cameras,

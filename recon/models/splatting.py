@@ -47,8 +47,13 @@ from recon.gaussians.init import (
 )
 from recon.gaussians.mip_filter import sampling_intervals, smoothed
 from recon.gaussians.optim import keep_rows, make_adam
-from recon.gaussians.ply import write_splat_ply
-from recon.gaussians.render import ProjectedSplats, composite_rgb, composite_rgbd, project_splats
+from recon.gaussians.render import (
+    ProjectedSplats,
+    composite_rgb,
+    composite_rgbd,
+    mean_compensation,
+    project_splats,
+)
 from recon.gaussians.ssim import ssim
 from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
@@ -467,9 +472,19 @@ class GaussianModel(Model):
             cameras = self.train_cameras(data.cameras).to(means.device)
             self.filter_intervals = sampling_intervals(means, cameras, near=self.config.near_plane)
 
-    def splats(self) -> dict:
-        """The Gaussians as rendered (filter_3d baked in), as numpy arrays."""
-        p = {k: v.detach().cpu().numpy() for k, v in self.gaussians().items()}
+    @torch.no_grad()
+    def splats(self, cameras: Cameras | None = None) -> dict:
+        """The Gaussians as rendered (filter_3d baked in), as numpy arrays. An antialiased
+        model given its training `cameras` has the compensation baked into its opacities:
+        sigmoid(logit) times its mean over the views (`render.mean_compensation`), so that a
+        viewer that does not compensate shows it as training did, on average."""
+        g = {k: v.detach() for k, v in self.gaussians().items()}
+        if self.config.antialiased and cameras is not None:
+            comp = mean_compensation(g, self.train_cameras(cameras), self.config.near_plane)
+            opacity = torch.sigmoid(g["opacity_logits"].double().cpu()) * comp
+            logits = torch.log(opacity) - torch.log1p(-opacity)
+            g["opacity_logits"] = logits.to(g["opacity_logits"])
+        p = {k: v.cpu().numpy() for k, v in g.items()}
         return {
             "means": p["means"],
             "quats": p["quats"],
@@ -781,20 +796,6 @@ class GaussianModel(Model):
             **pose,
             **colour,
         }
-
-    @torch.no_grad()
-    def export_ply(self, path) -> None:
-        """Write the Gaussians as rendered (filter_3d baked in) as an INRIA splat PLY."""
-        p = {k: v.detach().cpu() for k, v in self.gaussians().items()}
-        sh = torch.cat([p["sh_dc"], p["sh_rest"]], 1).numpy()
-        write_splat_ply(
-            path,
-            p["means"].numpy(),
-            p["quats"].numpy(),
-            p["log_scales"].numpy(),
-            p["opacity_logits"].numpy(),
-            sh,
-        )
 
 
 def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
