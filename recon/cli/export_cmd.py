@@ -44,7 +44,9 @@ from recon.workspace import Workspace
 )
 @json_option
 def command(workspace, run, fmt, sh_degree, frame, output, as_json):
-    """Export a Gaussian-splat run -> WS/runs/RUN/export/ (files common splat viewers open)."""
+    """Export a Gaussian-splat run -> WS/runs/RUN/export/ (files common splat viewers open).
+    An antialiased run's opacities are written with their compensation averaged over the
+    training views, since viewers do not compensate."""
     from recon.export.stage import export_splats
 
     result = export_splats(Workspace.open(workspace), run, frame, output, fmt, sh_degree)
@@ -54,4 +56,9 @@ def command(workspace, run, fmt, sh_degree, frame, output, as_json):
         click.echo(
             f"export: {result['gaussians']} Gaussians ({frame} frame, {fmt}, SH degree "
             f"{result['sh_degree']}, {result['bytes'] / 1e6:.1f} MB) -> {result['path']}"
+            + (
+                "; antialiasing compensation baked into the opacities"
+                if result["antialias_baked"]
+                else ""
+            )
         )
