@@ -1,8 +1,9 @@
 """The `export` stage: the Gaussians of a run whose model `exports_splats`, in the world or the
 scene frame, in a format splat viewers open: the INRIA splat PLY (62 floats a Gaussian), the
 32-byte `.splat`, or PlayCanvas's compressed PLY (16 bytes a Gaussian plus 3 per SH
-coefficient kept); `sh_degree` drops the higher SH bands. An antialiased run's opacities are written with
-their compensation averaged over the training views, since viewers do not compensate."""
+coefficient kept); `sh_degree` drops the higher SH bands. An antialiased run's opacities are
+written with their compensation averaged over the training views, since viewers do not
+compensate."""
 
 from __future__ import annotations
 
