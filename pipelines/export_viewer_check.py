@@ -15,7 +15,6 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from recon.gaussians.render import mean_compensation
 from recon.metrics.image import psnr
 from recon.render.views import render_view
 from recon.workspace import Workspace
@@ -36,11 +35,8 @@ def main(workspace: str, run: str, level: int = 4) -> None:
     gts = load_images(ws, scene, idx, level)
     cams = scene.cameras(idx, "cpu", level)
     logits = model.params["opacity_logits"].data.clone()
-    comp = mean_compensation(
-        model.gaussians(), model.train_cameras(train_cams), model.config.near_plane
-    )
-    o = torch.sigmoid(logits.double()) * comp
-    baked = (torch.log(o) - torch.log1p(-o)).to(logits)
+    # what `recon export` writes (`GaussianModel.splats` with the training cameras)
+    baked = torch.from_numpy(model.splats(train_cams)["opacity_logits"]).reshape(logits.shape)
     trained_cfg = model.config
     for name, antialiased, lg in (
         ("as trained (compensated)", True, logits),

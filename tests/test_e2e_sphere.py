@@ -204,6 +204,14 @@ def test_forced_rerun_that_fails_keeps_the_old_run(trained):
     )
 
 
+def train_3dgs(ws, run, steps, *extra):
+    """`recon train --method 3dgs` of `steps` steps into run `run`, one evaluation view."""
+    recon_cli(
+        "train", "-w", str(ws), "--method", "3dgs", "--run", run, "--steps", steps,
+        "--eval-views", "1", *extra,
+    )  # fmt: skip
+
+
 def test_3dgs_train_render_and_splat_export(trained):
     from recon.gaussians.ply import read_splat_ply
     from recon.gaussians.splat_formats import read_compressed_ply, read_dot_splat
@@ -246,23 +254,7 @@ def test_3dgs_train_render_and_splat_export(trained):
     assert out["antialias_baked"] is False
     # an antialiased run exports its opacities times their mean compensation over the
     # training views (viewers do not compensate): never above the model's own, some below
-    recon_cli(
-        "train",
-        "-w",
-        str(trained),
-        "--method",
-        "3dgs",
-        "--run",
-        "aa",
-        "--steps",
-        "10",
-        "--eval-views",
-        "1",
-        "--set",
-        "init_points=500",
-        "--set",
-        "antialiased=true",
-    )
+    train_3dgs(trained, "aa", "10", "--set", "init_points=500", "--set", "antialiased=true")
     aa = json.loads(recon_cli("export", "-w", str(trained), "--run", "aa", "--json").stdout)
     assert aa["antialias_baked"] is True
     from recon.workspace import Workspace
@@ -276,21 +268,7 @@ def test_3dgs_train_render_and_splat_export(trained):
     bad = recon_cli("export", "-w", str(trained), "--run", "3dgs", "--sh-degree", "4", check=False)
     assert bad.returncode == 2 and "sh-degree" in bad.stderr
     # the exported file seeds a new run through the CLI flag (round trip of the PLY format)
-    recon_cli(
-        "train",
-        "-w",
-        str(trained),
-        "--method",
-        "3dgs",
-        "--run",
-        "from-ply",
-        "--init-from-ply",
-        out["path"],
-        "--steps",
-        "1",
-        "--eval-views",
-        "1",
-    )
+    train_3dgs(trained, "from-ply", "1", "--init-from-ply", out["path"])
     run = json.loads((trained / "runs" / "from-ply" / "run.json").read_text())
     assert run["config"]["init_ply"] == str(Path(out["path"]).resolve())
     assert (

@@ -205,7 +205,7 @@ class GaussiansConfig:
     )
     antialiased: bool = opt(
         False,
-        "scale each splat's opacity by sqrt(det Sigma / det(Sigma + 0.3 I)) so the dilation keeps its integral (gsplat's antialiased mode, Mip-Splatting's 2D filter normalisation); other viewers render exports without it",
+        "scale each splat's opacity by sqrt(det Sigma / det(Sigma + 0.3 I)) so the dilation keeps its integral (gsplat's antialiased mode, Mip-Splatting's 2D filter normalisation); exports bake its mean over the training views into the opacities, as other viewers do not compensate",
     )
     filter_3d: float = opt(
         0.0,
