@@ -17,6 +17,7 @@ import torch
 
 from recon.metrics.image import psnr
 from recon.render.views import render_view
+from recon.train.resolution import trained_resolution
 from recon.workspace import Workspace
 from recon.workspace.runs import load_run
 from recon.workspace.scene import load_images
@@ -28,9 +29,8 @@ def main(workspace: str, run: str, level: int = 4) -> None:
     model, scene, doc = load_run(ws, run)
     if not getattr(model.config, "antialiased", False):
         sys.exit(f"run '{run}' was not trained with antialiased=true")
-    train_cams = scene.cameras(
-        scene.split("train"), "cpu", doc["resolution"]["working"]["downscale"]
-    )
+    level = trained_resolution(doc, scene).downscale
+    train_cams = scene.cameras(scene.split("train"), "cpu", level)
     idx = scene.split("test")
     gts = load_images(ws, scene, idx, level)
     cams = scene.cameras(idx, "cpu", level)

@@ -14,6 +14,7 @@ from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.splat_formats import write_compressed_ply, write_dot_splat
 from recon.gaussians.transform import gaussians_to_world
 from recon.io.atomic import atomic_path
+from recon.train.resolution import trained_resolution
 from recon.workspace import Workspace, WorkspaceError
 from recon.workspace.runs import load_run
 
@@ -60,7 +61,7 @@ def export_splats(
     if getattr(model.config, "antialiased", False):
         # the compensation is a function of the view: bake its mean over the training views,
         # at the resolution the run trained at (`GaussianModel.splats`)
-        level = ((run_doc.get("resolution") or {}).get("working") or {}).get("downscale", 1)
+        level = trained_resolution(run_doc, scene).downscale
         cameras = scene.cameras(scene.split("train"), "cpu", level)
     g = model.splats(cameras)
     if frame == "world":
