@@ -1,14 +1,15 @@
 """The hash encoding's Jacobian in x: the numba kernel against the torch twin, both against
 central differences of the encoding in float64, zero where the encoding clamps, and the
-kernel's table gradient against autograd through the twin."""
+kernel's table gradient against autograd through the twin; the fused encoding + Jacobian
+pass against the two twins, values and the table gradient of both outputs at once."""
 
 import torch
 
-from recon.fields.hashgrid import (
-    hash_encode_torch,
+from recon.fields.hashgrid import hash_encode_torch, level_layout
+from recon.fields.hashgrid_jacobian import (
+    hash_encode_and_jacobian,
     hash_jacobian,
     hash_jacobian_torch,
-    level_layout,
 )
 
 F64 = torch.float64
@@ -63,4 +64,34 @@ def test_table_gradient_matches_autograd_through_the_twin():
     (hash_jacobian(x, t1, LAYOUT) * w).sum().backward()
     t2 = t.clone().requires_grad_(True)
     (hash_jacobian_torch(x, t2, LAYOUT) * w).sum().backward()
+    torch.testing.assert_close(t1.grad, t2.grad, rtol=1e-12, atol=1e-12)
+
+
+def test_fused_encoding_and_jacobian_match_the_twins_with_one_table_gradient():
+    t, x = table(), points()
+    x[0] = torch.tensor([1.0, 0.5, 0.0], dtype=F64)  # on the cube's faces: J is 0, enc clamps
+    x[1] = torch.tensor([1.3, -0.2, 0.5], dtype=F64)
+    t1 = t.clone().requires_grad_(True)
+    enc, jac = hash_encode_and_jacobian(x, t1, LAYOUT)
+    t2 = t.clone().requires_grad_(True)
+    enc_ref, jac_ref = hash_encode_torch(x, t2, LAYOUT), hash_jacobian_torch(x, t2, LAYOUT)
+    torch.testing.assert_close(enc, enc_ref, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(jac, jac_ref, rtol=1e-12, atol=1e-12)
+    assert (jac[:2] == 0).all()
+    gen = torch.Generator().manual_seed(5)
+    we = torch.randn(enc.shape, generator=gen, dtype=F64)
+    wj = torch.randn(jac.shape, generator=gen, dtype=F64)
+    ((enc * we).sum() + (jac * wj).sum()).backward()
+    ((enc_ref * we).sum() + (jac_ref * wj).sum()).backward()
+    torch.testing.assert_close(t1.grad, t2.grad, rtol=1e-12, atol=1e-12)
+
+
+def test_fused_table_gradient_of_the_encoding_alone():
+    """Only the encoding used (the Jacobian's gradient arrives as zeros): the table gradient is
+    the encoding's, w_c summed per corner."""
+    t, x = table(), points()
+    t1 = t.clone().requires_grad_(True)
+    hash_encode_and_jacobian(x, t1, LAYOUT)[0].sum().backward()
+    t2 = t.clone().requires_grad_(True)
+    hash_encode_torch(x, t2, LAYOUT).sum().backward()
     torch.testing.assert_close(t1.grad, t2.grad, rtol=1e-12, atol=1e-12)

@@ -114,22 +114,41 @@ def test_time_budget_counts_evaluations():
 
 
 def test_slow_evaluations_are_capped_to_a_fraction_of_the_run():
-    """The same slow evaluations (0.2 s each) with the default cap (0.1): after the first one
-    the next is not due before the run is 4 s old, so in 1 s only the final one follows."""
+    """The same slow evaluations (4 views of 50 ms) with the default cap (0.1): the first,
+    10 ms into the run, stops after its first view (the other three would break the cap) and
+    keeps 0.2 s as the final one's reserve; the next probe is not due before the run is ~1 s
+    old, so in 1 s only the final evaluation gives a PSNR."""
     cams, imgs = _held(4)
     st, logs = LoopState(), []
     cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
     assert cfg.eval_max_fraction == 0.1
     assert run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
     evals = [e for e in logs if "test_psnr" in e]
-    assert len(evals) == 2  # the first periodic one and the final one; uncapped: one per 10 ms
+    assert len(evals) == 1  # the final one; uncapped: one per 10 ms
+    deferred = [e for e in logs if e.get("event") == "eval_deferred"]
+    assert len(deferred) == 1 and deferred[0]["eval_s"] == pytest.approx(0.05, abs=0.03)
+    assert deferred[0]["projected_s"] == pytest.approx(0.2, abs=0.1)
     assert st.wall_s > 0.5 * st.elapsed_s  # training, not evaluating, fills the budget
+
+
+def test_an_evaluation_that_fits_the_cap_runs_whole():
+    """Views of 50 ms, the first evaluation after 1 s of training: 4 views (0.2 s) fit a cap
+    of 0.5, so it gives a PSNR and nothing is deferred."""
+    cams, imgs = _held(4)
+    st, logs = LoopState(), []
+    cfg = TrainConfig(
+        method="toy", time_budget_s=1.6, eval_every_s=1.0, eval_max_fraction=0.5
+    )
+    run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    assert not [e for e in logs if e.get("event") == "eval_deferred"]
+    assert len([e for e in logs if "test_psnr" in e]) == 2  # the periodic one and the final
 
 
 def test_a_stale_reserve_is_remeasured_so_the_budget_is_used():
     """Renders that get 20x cheaper after the first evaluation (as ngp's do once its occupancy
-    grid empties): the 0.4 s reserve measured then is re-measured on one view near the end,
-    and the run trains until ~0.02 s before its 3 s budget instead of stopping 0.4 s early."""
+    grid empties): the 0.4 s reserve measured then (1.5 s into the run, under a cap of 0.5)
+    is re-measured on one view near the end, and the run trains until ~0.02 s before its 3 s
+    budget instead of stopping 0.4 s early."""
     cams, imgs = _held(4)
     renders = []
     model = SlowEval(0.1, on_render=lambda: renders.append(1))
@@ -141,7 +160,7 @@ def test_a_stale_reserve_is_remeasured_so_the_budget_is_used():
 
     model.on_render = cheaper
     st, logs = LoopState(), []
-    cfg = TrainConfig(method="toy", time_budget_s=3.0, eval_every_s=0.01)
+    cfg = TrainConfig(method="toy", time_budget_s=3.0, eval_every_s=1.5, eval_max_fraction=0.5)
     assert run_loop(model, _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
     assert 2.9 <= st.elapsed_s <= 3.1, st.elapsed_s
     assert len([e for e in logs if "test_psnr" in e]) == 2  # the first and the final one
@@ -184,7 +203,7 @@ def test_interrupt_during_an_evaluation_stops_between_views():
     cams, imgs = _held(50)
     renders = []
     model = SlowEval(0.01, on_render=lambda: renders.append(1))
-    cfg = TrainConfig(method="toy", steps=100, eval_every_s=0.0)
+    cfg = TrainConfig(method="toy", steps=100, eval_every_s=0.0, eval_max_fraction=0.0)
     with pytest.raises(KeyboardInterrupt):
         run_loop(
             model,

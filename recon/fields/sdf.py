@@ -17,7 +17,8 @@ E (||grad f|| - 1)^2 of Gropp et al. 2020, "IGR", eq. 2) is exact, by the chain 
 
 with d(MLP)/d(x, enc) by autograd through the small MLP (create_graph while training, so the
 eikonal loss has gradients: a double backward through the MLP only) and J from
-`hash_jacobian`, linear in the grid's table and differentiable in it.
+`hash_encode_and_jacobian` (the encoding and J in one pass over the corners), linear in the
+grid's table and differentiable in it.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ import math
 import torch
 from torch import Tensor, nn
 
-from recon.fields.hashgrid import HashGrid, hash_jacobian
+from recon.fields.hashgrid import HashGrid
+from recon.fields.hashgrid_jacobian import hash_encode_and_jacobian
 
 SOFTPLUS_BETA = 100.0  # Softplus(100 x) / 100: ReLU-like with a smooth, non-zero second derivative
 
@@ -105,7 +107,11 @@ class SDFField(nn.Module):
         x = x.detach()
         u = (x + 1.0) / 2.0  # du/dx = 1/2
         with torch.enable_grad():
-            h = torch.cat([x, self._encode(u)], dim=-1)
+            enc, jac = hash_encode_and_jacobian(u, self.grid.table, self.grid.layout)
+            mask = self.level_mask(enc)  # (L F,): the masked levels' encoding and Jacobian are 0
+            if mask is not None:
+                enc, jac = enc * mask, jac * mask[:, None]
+            h = torch.cat([x, enc], dim=-1)
             if not h.requires_grad:
                 h.requires_grad_(True)
             z = h
@@ -113,13 +119,8 @@ class SDFField(nn.Module):
                 z = self.activation(layer(z))
             out = self.layers[-1](z)
             (g_h,) = torch.autograd.grad(out[:, 0].sum(), h, create_graph=create_graph)
-            jac = hash_jacobian(u, self.grid.table, self.grid.layout)  # (N, L F, 3)
             radial = x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            g_enc = g_h[:, 3:]  # d out / d (masked encoding): the masked levels' Jacobian is 0
-            mask = self.level_mask(g_enc)
-            if mask is not None:
-                g_enc = g_enc * mask
-            grad = radial + g_h[:, :3] + 0.5 * torch.einsum("nj,nja->na", g_enc, jac)
+            grad = radial + g_h[:, :3] + 0.5 * torch.einsum("nj,nja->na", g_h[:, 3:], jac)
         sdf = x.norm(dim=-1) - self.radius + out[:, 0]
         if not create_graph:
             return sdf.detach(), grad.detach(), out[:, 1:].detach()

@@ -37,6 +37,7 @@ class LoopState:
     best_psnr: float = -math.inf
     evals_since_best: int = 0
     last_eval_wall: float = 0.0  # the first evaluation comes after eval_every_s of training
+    last_psnr_wall: float = 0.0  # wall_s of the last evaluation that gave a PSNR (not deferred)
     last_ckpt_wall: float = 0.0
     elapsed_s: float = 0.0  # wall time of the run so far, evaluations and checkpoints included
     eval_cost_s: float = 0.0  # how long the last held-out evaluation took (or a re-measure)
@@ -52,20 +53,25 @@ def heldout_psnr(
     cameras: Cameras,
     images: torch.Tensor,
     interrupted: Callable[[], bool] = lambda: False,
-) -> float:
+    go_on: Callable[[int, float], bool] | None = None,
+) -> float | None:
     """Mean PSNR (dB) of the model's renders of held-out views against the photos (C, h, w, 3).
     Cameras finer than the photos are rendered at their own size and area-downsampled to the
     photos' (as the photos of a coarser pyramid level are made). Raises KeyboardInterrupt
     between two views once `interrupted()` (Ctrl-C / SIGTERM never waits for a whole
-    evaluation)."""
+    evaluation). `go_on(views done, seconds so far)`, asked between two views, may abandon the
+    evaluation: then None."""
     was_training = model.training
     model.eval()
     psnrs = []
     height, width = images.shape[1:3]
+    t0 = time.perf_counter()
     try:
         for i in range(len(cameras)):
             if interrupted():
                 raise KeyboardInterrupt
+            if i and go_on is not None and not go_on(i, time.perf_counter() - t0):
+                return None
             rgb = model.render(cameras[i])["rgb"].clamp(0, 1)
             if rgb.shape[:2] != (height, width):
                 small = resize_area(rgb.float().cpu().numpy(), width, height)
@@ -150,7 +156,7 @@ def run_loop(
     while (reason := stop_reason()) is None:
         if interrupted():  # Ctrl-C / SIGTERM are honoured between steps, never inside one
             raise KeyboardInterrupt
-        if held_cams is not None and eval_due(cfg, st):
+        if held_cams is not None and eval_due(cfg, st, len(held_cams)):
             _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
             tick()
             if (reason := stop_reason()) is not None:
@@ -177,8 +183,8 @@ def run_loop(
             st.last_ckpt_wall = st.wall_s
             tick()
     require_finite_parameters(model, st, log)
-    if held_cams is not None and st.last_eval_wall < st.wall_s:
-        _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted)
+    if held_cams is not None and st.last_psnr_wall < st.wall_s:
+        _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted, final=True)
         tick()
     return reason
 
@@ -216,16 +222,23 @@ def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict],
         raise FloatingPointError(f"non-finite values in {', '.join(bad[:3])} after step {st.step}")
 
 
-def eval_due(cfg: TrainConfig, st: LoopState) -> bool:
-    """A periodic evaluation is due every eval_every_s of training, unless the evaluations
-    (this one estimated at the last one's cost) would exceed eval_max_fraction of the wall
-    time. Example: 10 s evaluations, fraction 0.1: at most one per 100 s of the run."""
+def eval_due(cfg: TrainConfig, st: LoopState, views: int = 1) -> bool:
+    """A periodic evaluation of `views` held-out views is due every eval_every_s of training,
+    unless its first view (at the last measured cost a view) would take the evaluations over
+    eval_max_fraction of the wall time; the evaluation itself stops after any view past which
+    the rest would (`within_eval_cap`). Example: 10 s evaluations of one view, fraction 0.1: at
+    most one per 100 s of the run."""
     if st.wall_s - st.last_eval_wall < cfg.eval_every_s:
         return False
+    return within_eval_cap(cfg, st, st.eval_cost_s / views)
+
+
+def within_eval_cap(cfg: TrainConfig, st: LoopState, more_s: float) -> bool:
+    """Whether `more_s` seconds more of evaluation keep all evaluations within
+    eval_max_fraction of the run's wall time (0: no cap)."""
     if cfg.eval_max_fraction <= 0:
         return True
-    spent = st.eval_total_s + st.eval_cost_s
-    return spent <= cfg.eval_max_fraction * (st.elapsed_s + st.eval_cost_s)
+    return st.eval_total_s + more_s <= cfg.eval_max_fraction * (st.elapsed_s + more_s)
 
 
 def reserve_stale(cfg: TrainConfig, st: LoopState) -> bool:
@@ -249,12 +262,39 @@ def _remeasure_reserve(model, cams, imgs, st: LoopState, interrupted) -> None:
     st.eval_cost_wall = st.wall_s
 
 
-def _evaluate(model, cams, imgs, cfg, st: LoopState, log, interrupted) -> None:
+def _evaluate(model, cams, imgs, cfg, st: LoopState, log, interrupted, final=False) -> None:
+    """The held-out PSNR, logged. A periodic evaluation (not `final`) is abandoned after a view
+    past which the rest, at the views' measured mean cost, would break the evaluations' cap
+    (`within_eval_cap`): a young volume model's first views can take ten times its later ones
+    (lego-200 sdf: 47 s for the evaluation at 60 s of training, 4 s from 500 s on), time the
+    budget then lacks for training. Its cost so far counts, and the full evaluation's projected
+    cost is kept as the reserve for the final one."""
+    n = len(cams)
+
+    def go_on(done: int, spent: float) -> bool:
+        nonlocal projected
+        projected = spent * n / done
+        return final or within_eval_cap(cfg, st, projected)
+
+    projected = 0.0
     t0 = time.perf_counter()
-    psnr = heldout_psnr(model, cams, imgs, interrupted)
-    st.eval_cost_s = time.perf_counter() - t0
-    st.eval_total_s += st.eval_cost_s
+    psnr = heldout_psnr(model, cams, imgs, interrupted, go_on)
+    spent = time.perf_counter() - t0
+    st.eval_total_s += spent
+    st.eval_cost_s = spent if psnr is not None else projected
     st.eval_cost_wall = st.last_eval_wall = st.wall_s
+    if psnr is None:
+        log(
+            {
+                "step": st.step,
+                "wall_s": round(st.wall_s, 4),
+                "event": "eval_deferred",
+                "eval_s": round(spent, 3),
+                "projected_s": round(projected, 3),
+            }
+        )
+        return
+    st.last_psnr_wall = st.wall_s
     if psnr > st.best_psnr + cfg.min_improvement_db:
         st.best_psnr, st.evals_since_best = psnr, 0
     else:
