@@ -136,9 +136,7 @@ def test_an_evaluation_that_fits_the_cap_runs_whole():
     of 0.5, so it gives a PSNR and nothing is deferred."""
     cams, imgs = _held(4)
     st, logs = LoopState(), []
-    cfg = TrainConfig(
-        method="toy", time_budget_s=1.6, eval_every_s=1.0, eval_max_fraction=0.5
-    )
+    cfg = TrainConfig(method="toy", time_budget_s=1.6, eval_every_s=1.0, eval_max_fraction=0.5)
     run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
     assert not [e for e in logs if e.get("event") == "eval_deferred"]
     assert len([e for e in logs if "test_psnr" in e]) == 2  # the periodic one and the final

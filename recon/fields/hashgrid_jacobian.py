@@ -115,7 +115,12 @@ def _encode_jacobian_backward(
             _fill_slopes(x, p, n, nf, inside[p], dws)
             for k in range(n_feat):
                 col = lv * n_feat + k
-                ge, ga0, ga1, ga2 = g_enc[p, col], g_jac[p, col, 0], g_jac[p, col, 1], g_jac[p, col, 2]
+                ge, ga0, ga1, ga2 = (
+                    g_enc[p, col],
+                    g_jac[p, col, 0],
+                    g_jac[p, col, 1],
+                    g_jac[p, col, 2],
+                )
                 for c in range(8):
                     grad_table[rows[c], k] += (
                         ws[c] * ge + dws[c, 0] * ga0 + dws[c, 1] * ga1 + dws[c, 2] * ga2
@@ -142,7 +147,16 @@ class _HashEncodeJacobianCPU(torch.autograd.Function):
         jac = torch.empty((x.shape[0], out_dim, 3), dtype=table.dtype)
         tab = table.detach().contiguous().numpy()
         _encode_jacobian_forward(
-            xs.numpy(), inside.numpy(), tab, enc.numpy(), jac.numpy(), res, resf, size, dense, offset
+            xs.numpy(),
+            inside.numpy(),
+            tab,
+            enc.numpy(),
+            jac.numpy(),
+            res,
+            resf,
+            size,
+            dense,
+            offset,
         )
         ctx.save_for_backward(x.detach())
         ctx.layout, ctx.table_shape = layout, table.shape
