@@ -193,6 +193,9 @@ def test_eval_due_worked_example():
     spent = {"eval_total_s": 10.0, "eval_cost_s": 10.0, "last_eval_wall": 30.0}
     assert not eval_due(cfg, LoopState(wall_s=80.0, elapsed_s=95.0, **spent))
     assert eval_due(cfg, LoopState(wall_s=180.0, elapsed_s=190.0, **spent))
+    # the same 10 s over 4 views: a 2.5 s first view fits once the run is 122.5 s old
+    assert not eval_due(cfg, LoopState(wall_s=100.0, elapsed_s=110.0, **spent), views=4)
+    assert eval_due(cfg, LoopState(wall_s=115.0, elapsed_s=125.0, **spent), views=4)
 
 
 def test_interrupt_during_an_evaluation_stops_between_views():

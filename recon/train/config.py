@@ -40,7 +40,8 @@ class TrainConfig:
     eval_max_fraction: float = opt(
         0.1,
         "a periodic PSNR waits while evaluations would take more than this fraction of the "
-        "run's wall time (0 = no cap); a slow renderer then evaluates less often",
+        "run's wall time, and stops after a view past which the rest would (0 = no cap); a "
+        "slow renderer then evaluates less often",
     )
     patience: int = opt(0, "stop when held-out PSNR has not improved for this many evals (0 = off)")
     min_improvement_db: float = opt(0.05, "what counts as an improvement for `patience`")
