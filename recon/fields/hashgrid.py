@@ -96,6 +96,16 @@ def _cell(x, nf, n):
 
 
 @numba.njit(cache=True, inline="always")
+def _level(res, resf, size, dense, offset, lv):
+    """Level lv's constants for `_fill_corners`: (n, nf, size, offset, dense, stride_y,
+    stride_z, size is a power of 2). Strides: dense (N+1), (N+1)^2; hashed the primes P2, P3."""
+    n, dn, sz = res[lv], dense[lv], size[lv]
+    stride_y = n + 1 if dn else np.int64(2654435761)
+    stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
+    return n, resf[lv], sz, offset[lv], dn, stride_y, stride_z, sz & (sz - 1) == 0
+
+
+@numba.njit(cache=True, inline="always")
 def _fill_corners(x, p, n, nf, dn, sz, pow2, stride_y, stride_z, off, rows, ws):  # pragma: no cover
     """rows[c], ws[c] for the 8 corners c = dx + 2 dy + 4 dz of point p's cell on one level.
     Per-axis index terms are combined: dense  x + y (N+1) + z (N+1)^2,  hashed  x ^ y P2 ^ z P3."""
@@ -129,10 +139,7 @@ def _hash_backward(x, grad_table, grad_feats, res, resf, size, dense, offset):  
     """
     n_pts, n_levels, n_feat = x.shape[0], res.shape[0], grad_table.shape[1]
     for lv in numba.prange(n_levels):
-        n, nf, sz, off, dn = res[lv], resf[lv], size[lv], offset[lv], dense[lv]
-        stride_y = n + 1 if dn else np.int64(2654435761)
-        stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
-        pow2 = sz & (sz - 1) == 0
+        n, nf, sz, off, dn, stride_y, stride_z, pow2 = _level(res, resf, size, dense, offset, lv)
         rows = np.empty(8, np.int64)  # per-thread scratch, reused for every point
         ws = np.empty(8, x.dtype)
         for p in range(n_pts):
@@ -155,10 +162,9 @@ def _hash_forward(x, table, feats, res, resf, size, dense, offset):  # pragma: n
         rows = np.empty(8, np.int64)
         ws = np.empty(8, x.dtype)
         for lv in range(n_levels):
-            n, nf, sz, off, dn = res[lv], resf[lv], size[lv], offset[lv], dense[lv]
-            stride_y = n + 1 if dn else np.int64(2654435761)
-            stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
-            pow2 = sz & (sz - 1) == 0
+            n, nf, sz, off, dn, stride_y, stride_z, pow2 = _level(
+                res, resf, size, dense, offset, lv
+            )
             for p in range(b * block, min((b + 1) * block, n_pts)):
                 _fill_corners(x, p, n, nf, dn, sz, pow2, stride_y, stride_z, off, rows, ws)
                 for k in range(n_feat):

@@ -29,6 +29,7 @@ from recon.fields.hashgrid import (
     _cell,
     _fill_corners,
     _layout_arrays,
+    _level,
     corner_indices_and_weights,
     hash_encode_torch,
 )
@@ -61,52 +62,19 @@ def _fill_slopes(x, p, n, nf, inside, dws):  # pragma: no cover
 
 
 @numba.njit(parallel=True, cache=True)
-def _encode_jacobian_forward(
-    x, inside, table, enc, jac, res, resf, size, dense, offset
+def _encode_jacobian_kernel(
+    x, inside, table, enc, jac, res, resf, size, dense, offset, backward
 ):  # pragma: no cover
-    """enc[p, l F + k] = sum_c w_c table[row_c, k]; jac[p, l F + k, a] = sum_c dw_c/dx_a
-    table[row_c, k]. x (N, 3) clamped to [0, 1]; inside (N,) bool. Parallel over levels, each
-    thread streaming every point through its levels' slices of the table."""
+    """forward:  enc[p, l F + k] = sum_c w_c table[row_c, k],
+              jac[p, l F + k, a] = sum_c dw_c/dx_a table[row_c, k];
+    backward: table[row_c, k] += w_c enc[p, l F + k] + sum_a dw_c/dx_a jac[p, l F + k, a]
+              (table the gradient buffer, enc and jac the outputs' gradients: one scatter).
+    x (N, 3) clamped to [0, 1]; inside (N,) bool. Parallel over levels, each thread streaming
+    every point through its levels' slices of the table: no other thread writes a level's
+    rows, so the scatter has no races."""
     n_pts, n_levels, n_feat = x.shape[0], res.shape[0], table.shape[1]
     for lv in numba.prange(n_levels):
-        n, nf, sz, off, dn = res[lv], resf[lv], size[lv], offset[lv], dense[lv]
-        stride_y = n + 1 if dn else np.int64(2654435761)
-        stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
-        pow2 = sz & (sz - 1) == 0
-        rows = np.empty(8, np.int64)
-        ws = np.empty(8, x.dtype)
-        dws = np.empty((8, 3), x.dtype)
-        for p in range(n_pts):
-            _fill_corners(x, p, n, nf, dn, sz, pow2, stride_y, stride_z, off, rows, ws)
-            _fill_slopes(x, p, n, nf, inside[p], dws)
-            for k in range(n_feat):
-                e = j0 = j1 = j2 = 0.0
-                for c in range(8):
-                    v = table[rows[c], k]
-                    e += ws[c] * v
-                    j0 += dws[c, 0] * v
-                    j1 += dws[c, 1] * v
-                    j2 += dws[c, 2] * v
-                col = lv * n_feat + k
-                enc[p, col] = e
-                jac[p, col, 0] = j0
-                jac[p, col, 1] = j1
-                jac[p, col, 2] = j2
-
-
-@numba.njit(parallel=True, cache=True)
-def _encode_jacobian_backward(
-    x, inside, grad_table, g_enc, g_jac, res, resf, size, dense, offset
-):  # pragma: no cover
-    """grad_table[row_c, k] += w_c g_enc[p, l F + k] + sum_a dw_c/dx_a g_jac[p, l F + k, a]:
-    the backward of `_encode_jacobian_forward`, one scatter for both outputs. Parallel over
-    levels: no other thread writes a level's rows, so the scatter has no races."""
-    n_pts, n_levels, n_feat = x.shape[0], res.shape[0], grad_table.shape[1]
-    for lv in numba.prange(n_levels):
-        n, nf, sz, off, dn = res[lv], resf[lv], size[lv], offset[lv], dense[lv]
-        stride_y = n + 1 if dn else np.int64(2654435761)
-        stride_z = (n + 1) * (n + 1) if dn else np.int64(805459861)
-        pow2 = sz & (sz - 1) == 0
+        n, nf, sz, off, dn, stride_y, stride_z, pow2 = _level(res, resf, size, dense, offset, lv)
         rows = np.empty(8, np.int64)
         ws = np.empty(8, x.dtype)
         dws = np.empty((8, 3), x.dtype)
@@ -115,16 +83,24 @@ def _encode_jacobian_backward(
             _fill_slopes(x, p, n, nf, inside[p], dws)
             for k in range(n_feat):
                 col = lv * n_feat + k
-                ge, ga0, ga1, ga2 = (
-                    g_enc[p, col],
-                    g_jac[p, col, 0],
-                    g_jac[p, col, 1],
-                    g_jac[p, col, 2],
-                )
-                for c in range(8):
-                    grad_table[rows[c], k] += (
-                        ws[c] * ge + dws[c, 0] * ga0 + dws[c, 1] * ga1 + dws[c, 2] * ga2
-                    )
+                if backward:
+                    ge, ga0, ga1, ga2 = enc[p, col], jac[p, col, 0], jac[p, col, 1], jac[p, col, 2]
+                    for c in range(8):
+                        table[rows[c], k] += (
+                            ws[c] * ge + dws[c, 0] * ga0 + dws[c, 1] * ga1 + dws[c, 2] * ga2
+                        )
+                else:
+                    e = j0 = j1 = j2 = 0.0
+                    for c in range(8):
+                        v = table[rows[c], k]
+                        e += ws[c] * v
+                        j0 += dws[c, 0] * v
+                        j1 += dws[c, 1] * v
+                        j2 += dws[c, 2] * v
+                    enc[p, col] = e
+                    jac[p, col, 0] = j0
+                    jac[p, col, 1] = j1
+                    jac[p, col, 2] = j2
 
 
 def _kernel_args(x: Tensor, layout: dict) -> tuple:
@@ -146,18 +122,10 @@ class _HashEncodeJacobianCPU(torch.autograd.Function):
         enc = torch.empty((x.shape[0], out_dim), dtype=table.dtype)
         jac = torch.empty((x.shape[0], out_dim, 3), dtype=table.dtype)
         tab = table.detach().contiguous().numpy()
-        _encode_jacobian_forward(
-            xs.numpy(),
-            inside.numpy(),
-            tab,
-            enc.numpy(),
-            jac.numpy(),
-            res,
-            resf,
-            size,
-            dense,
-            offset,
-        )
+        _encode_jacobian_kernel(
+            xs.numpy(), inside.numpy(), tab, enc.numpy(), jac.numpy(),
+            res, resf, size, dense, offset, False,
+        )  # fmt: skip
         ctx.save_for_backward(x.detach())
         ctx.layout, ctx.table_shape = layout, table.shape
         return enc, jac
@@ -167,10 +135,10 @@ class _HashEncodeJacobianCPU(torch.autograd.Function):
         (x,) = ctx.saved_tensors
         xs, inside, res, resf, size, dense, offset = _kernel_args(x, ctx.layout)
         grad_table = torch.zeros(ctx.table_shape, dtype=grad_jac.dtype)
-        _encode_jacobian_backward(
+        _encode_jacobian_kernel(
             xs.numpy(), inside.numpy(), grad_table.numpy(),
             grad_enc.detach().contiguous().numpy(), grad_jac.detach().contiguous().numpy(),
-            res, resf, size, dense, offset,
+            res, resf, size, dense, offset, True,
         )  # fmt: skip
         return None, grad_table, None
 
