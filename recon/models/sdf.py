@@ -175,8 +175,12 @@ SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0, "levels_steps": 0.5}
 # same VM) 1.3 dB: 21.68 dB in 1,643 steps against 23.01 dB in 1,531 steps without it; a
 # lower learning rate late in a short run starves the field (ngp does not fit its decay either).
 REPLAN_FRACTIONS = {"levels_steps": 0.5}
-# The termination pre-pass evaluates this many samples of every ray first (`march_terminated`).
-TERMINATION_FIRST_SAMPLES = 32
+# The termination pre-pass evaluates this many samples of every ray first (`march_terminated`;
+# the kept samples are the same whatever it is). An SDF's shell is a few samples thick, so 16
+# wastes less behind the surface than ngp's 32: on a trained lego-200 sdf, 29.7 k densities
+# evaluated a step instead of 39.9 k for the same 21.4 k kept; a step 250 -> 233 ms, a 200 px
+# view 622 -> 515 ms, the same loss to the bit (8 evaluates 26.8 k but is no faster).
+TERMINATION_FIRST_SAMPLES = 16
 
 
 class SDFModel(Model):
