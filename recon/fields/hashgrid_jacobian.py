@@ -126,14 +126,15 @@ class _HashEncodeJacobianCPU(torch.autograd.Function):
             xs.numpy(), inside.numpy(), tab, enc.numpy(), jac.numpy(),
             res, resf, size, dense, offset, False,
         )  # fmt: skip
-        ctx.save_for_backward(x.detach())
+        ctx.save_for_backward(xs, inside)
         ctx.layout, ctx.table_shape = layout, table.shape
         return enc, jac
 
     @staticmethod
     def backward(ctx, grad_enc: Tensor, grad_jac: Tensor):
-        (x,) = ctx.saved_tensors
-        xs, inside, res, resf, size, dense, offset = _kernel_args(x, ctx.layout)
+        xs, inside = ctx.saved_tensors
+        res, size, offset, dense = _layout_arrays(ctx.layout)
+        resf = res.astype(xs.numpy().dtype)
         grad_table = torch.zeros(ctx.table_shape, dtype=grad_jac.dtype)
         _encode_jacobian_kernel(
             xs.numpy(), inside.numpy(), grad_table.numpy(),
@@ -176,8 +177,3 @@ def hash_encode_and_jacobian(
     if x.device.type == "cpu" and x.dtype == table.dtype:
         return _HashEncodeJacobianCPU.apply(x, table, layout)
     return hash_encode_torch(x.detach(), table, layout), hash_jacobian_torch(x, table, layout)
-
-
-def hash_jacobian(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tensor:
-    """d(encoding)/dx (N, L F, 3) at x (N, 3), differentiable in the table and not in x."""
-    return hash_encode_and_jacobian(x, table, layout)[1]
