@@ -5,9 +5,15 @@ the render process's peak memory. Results as JSON + a markdown table in bench/re
 Protocol: the runs bench.py left in bench/work/lego-200 (one per method, named after it), every
 25th test view (8 frames), `OMP_NUM_THREADS=2`; frames/s from the median time per frame that
 `recon render` measures (model load and PNG/EXR writing excluded); peak RSS of the whole
-`recon render` process (ru_maxrss of a child that runs only it).
+`recon render` process (ru_maxrss of a child that runs only it). The PSNR column is each run's
+`recon eval` (every 8th test view, as bench.py) where it has one.
 
-    python pipelines/bench_render.py [--methods 3dgs,ngp] [--scales 1,4]
+The neural fields (ngp, nerf) are also baked into a plenoxel lattice and trained on for
+`--bake-budget` seconds (`recon train --method plenoxel --bake-from RUN`, run RUN-baked, made
+once and kept), evaluated, and rendered the same way: how fast the same scene renders once
+baked, and at what PSNR against the run it came from.
+
+    python pipelines/bench_render.py [--methods 3dgs,ngp] [--scales 1,4] [--bakes ngp,nerf]
 """
 
 from __future__ import annotations
@@ -26,7 +32,44 @@ import click
 ROOT = Path(__file__).resolve().parents[1]
 WS = ROOT / "bench" / "work" / "lego-200"
 METHODS = ("3dgs", "ngp", "plenoxel", "nerf")
+BAKES = ("ngp", "nerf")  # runs of these methods are also baked into a plenoxel lattice
+BAKE_BUDGET_S = 120
 EVERY = 25
+
+
+def recon(*args: str) -> None:
+    """A `recon` command in a child process with 2 threads; its error ends the benchmark."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "recon.cli", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "2"},
+        cwd=ROOT,
+        check=False,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"recon {' '.join(args)} failed:\n{proc.stderr[-2000:]}")
+
+
+def bake(ws: Path, run: str, budget: float) -> str:
+    """RUN-baked: `run` baked into a plenoxel lattice, trained on for `budget` seconds and
+    evaluated on every 8th test view; made once, then reused."""
+    baked = f"{run}-baked"
+    if not (ws / "runs" / baked / "model.pt").exists():
+        print(f"bench render: baking {run} ({budget:g} s) ...", flush=True)
+        recon(
+            "train", "-w", str(ws), "--method", "plenoxel", "--bake-from", run,
+            "--time-budget", f"{budget:g}", "--threads", "2", "--eval-every", f"{budget / 4:g}",
+            "--eval-views", "4", "--force",
+        )  # fmt: skip
+        recon("eval", "-w", str(ws), "--run", baked, "--every", "8", "--no-pictures")
+    return baked
+
+
+def test_psnr(ws: Path, run: str) -> float | None:
+    """The mean PSNR of the run's last `recon eval`, if it has one."""
+    path = ws / "runs" / run / "eval" / "metrics.json"
+    return json.loads(path.read_text())["mean"]["psnr"] if path.exists() else None
 
 
 def render_once(ws: Path, run: str, scale: float) -> dict:
@@ -67,14 +110,15 @@ def markdown(results: dict) -> str:
             f"average at start {results['load_average']}."
         ),
         "",
-        "| method | run | model MB | size | ms / frame (median) | frames/s | peak RSS MB |",
-        "|---|---|---|---|---|---|---|",
+        "| method | run | test PSNR | model MB | size | ms / frame (median) | frames/s | peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results["runs"]:
+        psnr = "–" if r.get("test_psnr") is None else f"{r['test_psnr']:.2f}"
         for s in r["scales"]:
             w, h = s["resolution"]
             lines.append(
-                f"| {r['method']} | {r['run']} | {r['model_mb']:.1f} | {w}×{h} | "
+                f"| {r['method']} | {r['run']} | {psnr} | {r['model_mb']:.1f} | {w}×{h} | "
                 f"{s['ms_per_frame_median']:.1f} | {1000 / s['ms_per_frame_median']:.2f} | "
                 f"{s['peak_rss_mb']:.0f} |"
             )
@@ -86,18 +130,29 @@ def markdown(results: dict) -> str:
 @click.option(
     "--scales", default="1,4", show_default=True, help="Output sizes x the training size."
 )
+@click.option(
+    "--bakes",
+    default=",".join(BAKES),
+    show_default=True,
+    help="Runs to also bake into a plenoxel lattice ('' = none).",
+)
+@click.option("--bake-budget", default=BAKE_BUDGET_S, show_default=True, type=float)
 @click.option("--workspace", default=str(WS), show_default=True)
 @click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
-def main(methods: str, scales: str, workspace: str, out_dir: str) -> None:
+def main(
+    methods: str, scales: str, bakes: str, bake_budget: float, workspace: str, out_dir: str
+) -> None:
     ws = Path(workspace)
     runs = [m for m in methods.split(",") if (ws / "runs" / m / "model.pt").exists()]
     missing = sorted(set(methods.split(",")) - set(runs))
     if missing:
         print(f"bench render: no trained run for {', '.join(missing)} in {ws} (run bench.py)")
+    runs += [bake(ws, run, bake_budget) for run in bakes.split(",") if run in runs]
     results = {
         "date": dt.date.today().isoformat(),
         "machine": f"{socket.gethostname()}-{platform.machine()}-{os.cpu_count()}cpu",
         "load_average": [round(x, 2) for x in os.getloadavg()],
+        "bake_budget_s": bake_budget,
         "runs": [],
     }
     for run in runs:
@@ -106,6 +161,7 @@ def main(methods: str, scales: str, workspace: str, out_dir: str) -> None:
             "run": run,
             "method": doc["method"],
             "model_mb": (ws / "runs" / run / "model.pt").stat().st_size / 1e6,
+            "test_psnr": test_psnr(ws, run),
             "scales": [],
         }
         for scale in (float(s) for s in scales.split(",")):

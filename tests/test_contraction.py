@@ -2,7 +2,8 @@
 
 import torch
 
-from recon.volrend import contract, normalize_to_box, scene_to_unit_cube
+from recon.volrend import contract, normalize_to_box, scene_to_unit_cube, unit_cube_to_scene
+from recon.volrend.contraction import uncontract
 
 
 def test_worked_values():
@@ -57,3 +58,20 @@ def test_scene_to_unit_cube():
     assert ((u >= 0) & (u <= 1)).all()
     torch.testing.assert_close(u[0], torch.tensor([0.5, 0.5, 0.5]))
     assert abs(u[3, 0].item() - 1.0) < 1e-6
+
+
+def test_uncontract_and_unit_cube_to_scene_invert_the_forward_maps():
+    torch.testing.assert_close(
+        uncontract(torch.tensor([[5 / 3, 0.0, 0.0], [0.0, -1.75, 0.0]])),
+        torch.tensor([[3.0, 0.0, 0.0], [0.0, -4.0, 0.0]]),
+    )
+    x = torch.randn(500, 3, dtype=torch.float64) * 3
+    torch.testing.assert_close(uncontract(contract(x)), x)
+    assert torch.isinf(uncontract(torch.tensor([[2.0, 0.0, 0.0], [0.0, 1.5, 1.5]]))).all()
+    aabb = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 3.0]], dtype=torch.float64)
+    for unbounded in (False, True):
+        back = unit_cube_to_scene(scene_to_unit_cube(x, aabb, unbounded), aabb, unbounded)
+        torch.testing.assert_close(back, x)
+    # an unbounded cube's corner lies outside the contraction's ball: no point of the scene
+    corner = unit_cube_to_scene(torch.ones(1, 3, dtype=torch.float64), aabb, True)
+    assert torch.isinf(corner).all()

@@ -14,6 +14,7 @@ from recon.options import config_option, field_help, from_options
 from recon.train.config import TrainConfig
 from recon.train.stage import train
 from recon.workspace import Workspace
+from recon.workspace.runs import load_run
 
 
 def _list_options(method: str) -> str:
@@ -25,6 +26,23 @@ def _list_options(method: str) -> str:
     for f in dataclasses.fields(spec.config_cls):
         lines.append(f"  {f.name} = {f.default!r}  {helps.get(f.name, '')}")
     return "\n".join(lines)
+
+
+def _bakeable_model(ws: Workspace, spec, run: str) -> tuple[Path, int]:
+    """The model file of a finished run whose field `spec`'s method can bake, and the pyramid
+    level it trained at; else an error."""
+    if not spec.starts_from_fields:
+        raise click.UsageError(
+            f"--bake-from bakes a field into a voxel lattice: use it with --method plenoxel, "
+            f"not {spec.name}"
+        )
+    model, _, run_doc = load_run(ws, run)
+    if not model.has_radiance:
+        raise ValueError(
+            f"run '{run}' ({run_doc.get('method', '?')}) has no radiance field to bake: "
+            "bake an ngp or nerf run"
+        )
+    return ws.model_path(run).resolve(), int(run_doc["resolution"]["working"]["downscale"])
 
 
 @click.command("train")
@@ -68,6 +86,14 @@ def _list_options(method: str) -> str:
     help="3dgs: start from this INRIA splat PLY (world units, as `recon export` writes).",
 )
 @click.option(
+    "--bake-from",
+    "bake_from",
+    default=None,
+    metavar="RUN",
+    help="plenoxel: start from this ngp or nerf run, baked into the voxel lattice, and train on "
+    "(a copy that renders at the lattice's speed; the run is called RUN-baked by default).",
+)
+@click.option(
     "--list-options", is_flag=True, help="List the method's options with their help and exit."
 )
 @click.option(
@@ -78,7 +104,17 @@ def _list_options(method: str) -> str:
 )
 @json_option
 def command(
-    workspace, method, run, overrides, init_ply, list_options, resume, force, as_json, **options
+    workspace,
+    method,
+    run,
+    overrides,
+    init_ply,
+    bake_from,
+    list_options,
+    resume,
+    force,
+    as_json,
+    **options,
 ):
     """Train a scene representation -> WS/runs/RUN/ (run.json, log.jsonl, checkpoints/, model.pt).
 
@@ -98,6 +134,14 @@ def command(
             )
         overrides = (*overrides, f"init_ply={init_ply.resolve()}")
     ws = Workspace.open(workspace)
+    if bake_from is not None:
+        path, level = _bakeable_model(ws, spec, bake_from)
+        overrides = (*overrides, f"bake_from={path}")
+        if not (options["max_side"] or options["downscale"]):
+            options["downscale"] = level  # the baked copy trains at the source's resolution
+        run = run or f"{bake_from}-baked"
+        if run == bake_from:
+            raise click.UsageError("--bake-from RUN writes a new run: give another --run")
     if not (options["steps"] or options["time_budget_s"] or options["patience"]):
         method_cfg = spec.config_cls(**spec.presets.get(options["preset"], {}))
         options["steps"] = int(getattr(method_cfg, "default_steps", 0)) or 0

@@ -149,6 +149,7 @@ class Model(nn.Module):
     """
 
     has_density: bool = False  # `density(points)` is defined: marching cubes on the field
+    has_radiance: bool = False  # `radiance(points, directions)` is defined: a bake to voxels
     exports_splats: bool = False  # `splats()` returns its Gaussians (the splat PLY export)
     # Its renders at a coarser level than it trained at are not faithful: 3DGS dilates every
     # projected Gaussian by 0.3 px, which thickens and brightens the splats that minification
@@ -171,6 +172,11 @@ class Model(nn.Module):
 
     def density(self, points: Tensor) -> Tensor:
         """Volume density sigma (N,) at normalized points (N, 3); models with `has_density`."""
+        raise NotImplementedError
+
+    def radiance(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        """The field at normalized points (N, 3) seen along each of D unit directions (D, 3):
+        sigma (N,) and colour (N, D, 3) in [0, 1]; models with `has_radiance`."""
         raise NotImplementedError
 
     def splats(self) -> dict:
@@ -240,6 +246,7 @@ class MethodSpec:
     presets: dict  # preset name -> {field: value} overrides of the config defaults
     resolution: ResolutionPolicy = ResolutionPolicy()  # how the working resolution is chosen
     starts_from_splats: bool = False  # its config takes `init_ply`: a splat PLY to start from
+    starts_from_fields: bool = False  # its config takes `bake_from`: a model with `radiance`
 
 
 METHODS: dict[str, MethodSpec] = {}

@@ -188,6 +188,14 @@ class NeRFMLP(nn.Module):
         sigma = F.relu(raw) if self.activation == "relu" else F.softplus(raw - 1.0)
         return sigma, h
 
+    def colors(self, h: Tensor, d_enc: Tensor) -> Tensor:
+        """The colour (N, D, 3) of samples with last hidden layers h (N, W) (`geometry`) seen
+        along each of D encoded directions d_enc (D, Dd)."""
+        first, W = self.color[0], self.feature.out_features
+        per_sample = F.linear(self.feature(h), first.weight[:, :W], first.bias)  # (N, W / 2)
+        hidden = per_sample[:, None] + F.linear(d_enc, first.weight[:, W:])[None]
+        return torch.sigmoid(self.color[2](F.relu(hidden)).float())
+
     def forward(self, x_enc: Tensor, d_enc: Tensor) -> tuple[Tensor, Tensor]:
         """x_enc (R*S, P): S samples of each of R rays, ray-major; d_enc (R, D): one encoded
         direction per ray -> sigma (R*S,), rgb (R*S, 3), both fp32.
@@ -210,6 +218,7 @@ class NeRFMLP(nn.Module):
 
 class NeRFModel(Model):
     has_density = True
+    has_radiance = True
 
     def __init__(self, cfg: NeRFConfig, scene: SceneInfo):
         super().__init__()
@@ -257,6 +266,13 @@ class NeRFModel(Model):
 
     def density(self, points: Tensor) -> Tensor:
         return self._sigma(self.fine, self.encode_points(points))
+
+    @torch.no_grad()
+    def radiance(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        d_enc = positional_encoding(directions, self.cfg.dir_bands).to(self.dtype)
+        with self._autocast():
+            sigma, h = self.fine.geometry(self.encode_points(points).to(self.dtype))
+            return sigma, self.fine.colors(h, d_enc)
 
     def sigma_unit(self, x_unit: Tensor) -> Tensor:
         """Fine density (N,) at unit-cube points (the occupancy grid's domain). The encoding input

@@ -189,6 +189,7 @@ def uses_distortion(mode: str, unbounded: bool) -> bool:
 
 class NGPModel(Model):
     has_density = True
+    has_radiance = True
 
     def __init__(self, cfg: NGPConfig, scene: SceneInfo):
         super().__init__()
@@ -236,6 +237,13 @@ class NGPModel(Model):
     def density(self, points: Tensor) -> Tensor:
         sigma, _ = self.field.geometry(self.to_unit(points))
         return sigma
+
+    @torch.no_grad()
+    def radiance(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+        sigma, geo = self.field.geometry(self.to_unit(points))
+        basis = self.field.encode_directions(directions)  # (D, K)
+        rgb = [self.field.color(geo, b.expand(geo.shape[0], -1)) for b in basis]
+        return sigma, torch.stack(rgb, dim=1)
 
     def background_colour(self, directions: Tensor) -> Tensor:
         """What each ray (R, 3) sees behind the volume: the learned environment map (R, 3), or

@@ -9,7 +9,12 @@ Pure functions over sample intervals, padded (R, S) or packed (N,) + ray_indices
   contraction  - mip-NeRF 360 scene contraction for unbounded scenes.
 """
 
-from recon.volrend.contraction import contract, normalize_to_box, scene_to_unit_cube
+from recon.volrend.contraction import (
+    contract,
+    normalize_to_box,
+    scene_to_unit_cube,
+    unit_cube_to_scene,
+)
 from recon.volrend.occupancy import (
     OccupancyGrid,
     march_intervals,
@@ -58,5 +63,6 @@ __all__ = [
     "stratified_intervals",
     "surface_depth",
     "terminated_mask",
+    "unit_cube_to_scene",
     "volume_render",
 ]

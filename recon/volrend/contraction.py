@@ -42,3 +42,22 @@ def scene_to_unit_cube(x: Tensor, aabb: Tensor, unbounded: bool) -> Tensor:
     if unbounded:
         return 0.25 * contract(y) + 0.5
     return 0.5 * y + 0.5
+
+
+def uncontract(y: Tensor) -> Tensor:
+    """The inverse of `contract` on the open ball |y| < 2: y for |y| <= 1, else
+    y / (|y| (2 - |y|)) (|x| = 1 / (2 - |y|)); points at or beyond |y| = 2 give inf.
+    Example: (5/3, 0, 0) -> (3, 0, 0)."""
+    norm = y.norm(dim=-1, keepdim=True)
+    safe = norm.clamp_min(1.0)
+    outside = y / (safe * (2.0 - safe))
+    return torch.where(norm <= 1.0, y, torch.where(norm < 2.0, outside, torch.inf))
+
+
+def unit_cube_to_scene(u: Tensor, aabb: Tensor, unbounded: bool) -> Tensor:
+    """The inverse of `scene_to_unit_cube`: [0, 1]^3 -> the normalized scene frame (N, 3); an
+    unbounded scene's points outside the contraction's ball (|4 u - 2| >= 2) give inf."""
+    y = 4.0 * u - 2.0 if unbounded else 2.0 * u - 1.0
+    if unbounded:
+        y = uncontract(y)
+    return aabb[0] + (y + 1.0) * 0.5 * (aabb[1] - aabb[0])
