@@ -180,3 +180,31 @@ def test_bake_from_through_the_cli(tmp_path):
     assert again.returncode == 1 and "no radiance field" in again.stderr
     assert len(again.stderr.strip().splitlines()) == 1
     recon_cli("render", "-w", ws, "--run", "ngp-baked")
+
+
+def test_radiance_is_the_field_the_renderers_evaluate():
+    """ngp's and nerf's `radiance` (sigma once, the colour along D directions) against the
+    per-sample paths their renders take: ngp's colour MLP on each sample's own direction,
+    nerf's `NeRFMLP.forward` with one sample per ray."""
+    from recon.fields.encodings import positional_encoding
+    from recon.models.nerf import NeRFConfig, NeRFModel
+
+    torch.manual_seed(0)
+    _, info = sphere_scene()
+    x = torch.rand(50, 3) * 1.2 - 0.6
+    dirs = torch.nn.functional.normalize(torch.randn(3, 3), dim=-1)
+    ngp = NGPModel(SMALL, info)
+    sigma, rgb = ngp.radiance(x, dirs)
+    assert sigma.shape == (50,) and rgb.shape == (50, 3, 3)
+    ref_sigma, geo = ngp.field.geometry(ngp.to_unit(x))
+    torch.testing.assert_close(sigma, ref_sigma)
+    for j, d in enumerate(dirs):
+        enc = ngp.field.encode_directions(d.expand(50, 3))
+        torch.testing.assert_close(rgb[:, j], ngp.field.color(geo, enc))
+    nerf = NeRFModel(NeRFConfig(precision="fp32"), info)
+    sigma, rgb = nerf.radiance(x, dirs)
+    for j, d in enumerate(dirs):
+        d_enc = positional_encoding(d.expand(50, 3), nerf.cfg.dir_bands)
+        ref_sigma, ref_rgb = nerf.fine(nerf.encode_points(x), d_enc)
+        torch.testing.assert_close(sigma, ref_sigma)
+        torch.testing.assert_close(rgb[:, j], ref_rgb, atol=1e-6, rtol=1e-5)
