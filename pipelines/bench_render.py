@@ -159,7 +159,7 @@ def main(
         doc = json.loads((ws / "runs" / run / "run.json").read_text())
         entry = {
             "run": run,
-            "method": doc["method"],
+            "method": doc["method"] + (" (baked)" if doc["config"].get("bake_from") else ""),
             "model_mb": (ws / "runs" / run / "model.pt").stat().st_size / 1e6,
             "test_psnr": test_psnr(ws, run),
             "scales": [],

@@ -1,10 +1,13 @@
 import math
+from unittest.mock import patch
 
 import torch
 
 from recon.fields.voxels import SparseVoxelGrid, trilinear_corners
 from recon.models.plenoxel import PlenoxelConfig, PlenoxelModel
 from recon.models.raymarch import render_image
+from recon.volrend import ray_aabb_intersect
+from recon.volrend.occupancy import cell_points
 from tests.conftest import sphere_scene
 
 
@@ -322,3 +325,33 @@ def test_the_finest_lattice_is_sized_once_and_saved():
     for bad in ((0, 32), (16, 0, 64), ()):
         with pytest.raises(ValueError, match="only the last"):
             PlenoxelModel(sphere_config(resolutions=bad), info)
+
+
+def test_the_march_range_shrunk_to_the_occupied_box_keeps_every_sample():
+    """`_within_occupied`: the same kept samples (to rounding) and renders as marching the
+    whole box, with and without jitter; rays that miss the occupied box march nothing."""
+    model, data = trained_sphere(steps=80)
+    occ = model.occupancy  # keep the cells near the sphere (|x| < 0.6 in the +-0.7 box)
+    centres = cell_points(torch.arange(occ.resolution**3), occ.resolution, torch.full((1, 3), 0.5))
+    occ.occupied &= ((centres * 2 - 1) * 0.7).norm(dim=-1) < 0.6
+    box = occ.occupied_box()
+    assert box is not None and (box[0] > 0.05).all() and (box[1] < 0.95).all()
+    rays = data.rays()
+    o, d = rays["origins"][::5], rays["directions"][::5]
+    shrunk = model._ray_range(o, d)[:2]
+    whole = ray_aabb_intersect(o, d, model.aabb)[:2]
+    assert (shrunk[1] - shrunk[0]).sum() < 0.8 * (whole[1] - whole[0].clamp_min(0.05)).sum()
+    for u in (None, torch.rand(o.shape[0], generator=torch.Generator().manual_seed(3))):
+        ri, t0, t1 = model.kept_samples(o, d, u)
+        with patch.object(PlenoxelModel, "_within_occupied", lambda self, o, d, a, b: (a, b)):
+            ri2, s0, s1 = model.kept_samples(o, d, u)
+            whole_render = model.render(data.cameras[2])
+        assert ri.numel() > 1000 and torch.equal(ri, ri2)
+        assert torch.allclose(t0, s0, atol=1e-5) and torch.allclose(t1, s1, atol=1e-5)
+    out = model.render(data.cameras[2])
+    assert (out["rgb"] - whole_render["rgb"]).abs().max() < 1e-4
+    # nothing occupied: no ray marches at all
+    model.occupancy.occupied.fill_(False)
+    assert model.occupancy.occupied_box() is None
+    t_min, t_max, _ = model._ray_range(o, d)
+    assert torch.equal(t_min, t_max)

@@ -134,6 +134,10 @@ class PlenoxelConfig:
         "a trained model.pt (ngp, nerf) to start from: its field baked into the finest lattice at the first step, then trained on (`recon train --bake-from RUN`)",
     )
     bake_directions: int = opt(32, "view directions per vertex the baked colour's SH fit samples")
+    bake_voxel_pixels: float = opt(
+        1.5,
+        "a bake sizes its lattice (a last 0 of resolutions) to voxels this many training pixels wide (plenoxel's own: 1): it is there to render fast",
+    )
     default_steps: int = opt(4000, "steps when no stopping rule is given")
 
 
@@ -216,7 +220,27 @@ class PlenoxelModel(Model):
             t_max = torch.full((R,), self.scene.far, device=origins.device)
             return t_min, t_max, self.cfg.cone_angle or 1.0 / 256
         t_min, t_max, _ = ray_aabb_intersect(origins, dirs, self.aabb)
-        return t_min.clamp_min(self.scene.near), t_max, self.cfg.cone_angle
+        t_min = t_min.clamp_min(self.scene.near)
+        if self.cfg.cone_angle > 0:
+            return t_min, t_max, self.cfg.cone_angle
+        return (*self._within_occupied(origins, dirs, t_min, t_max), 0.0)
+
+    def _within_occupied(self, origins: Tensor, dirs: Tensor, t_min: Tensor, t_max: Tensor):
+        """[t_min, t_max] (R,) of a bounded scene's rays (steps of `_step_t` from t_min, no
+        cone) shrunk to the box around the occupied cells, by whole steps: the march's interval
+        k of the shrunk range is interval k + n of the full one, n the steps that end before the
+        ray enters that box, so every sample in an occupied cell stays the same (up to rounding),
+        and none is marched outside the box (a ray that misses it marches nothing)."""
+        box = self.occupancy.occupied_box()
+        if box is None:
+            return t_min, t_min
+        box = self.aabb[0] + box.to(self.aabb) * (self.aabb[1] - self.aabb[0])
+        enter, leave, hit = ray_aabb_intersect(origins, dirs, box)
+        step = self._step_t()
+        n = (torch.floor((enter - t_min) / step) - 1).clamp_min(0)
+        start = torch.where(hit, t_min + n * step, t_min)
+        end = torch.where(hit, torch.minimum(t_max, leave + step), t_min)
+        return start, torch.maximum(end, start)
 
     @torch.no_grad()
     def kept_samples(self, origins: Tensor, dirs: Tensor, u: Tensor | None):
@@ -374,9 +398,12 @@ class PlenoxelModel(Model):
     def lattice_sizes(self, data: TrainData | None = None) -> tuple:
         """The run's coarse-to-fine lattice sizes (`lattice_schedule`); a last 0 of
         cfg.resolutions is sized by `finest_lattice` from the training cameras `data` the first
-        time they are given, and kept (saved with the model)."""
+        time they are given (a bake's voxels bake_voxel_pixels pixels wide), and kept (saved
+        with the model)."""
         if self.cfg.resolutions[-1] == 0 and int(self.finest) == 0 and data is not None:
             side, footprint = self._box_and_pixel(data)
+            if self.cfg.bake_from:
+                footprint *= self.cfg.bake_voxel_pixels
             self.finest.fill_(finest_lattice(side, footprint, self.scene.unbounded))
         return lattice_schedule(self.cfg.resolutions, int(self.finest))
 
@@ -389,8 +416,9 @@ class PlenoxelModel(Model):
         sizes = self.lattice_sizes(data)
         if self.cfg.bake_from:
             return (
-                f"plenoxel lattice {sizes[-1]}^3 from the first step: {self.cfg.bake_from} "
-                "baked into it, then trained on"
+                f"plenoxel lattice {sizes[-1]}^3 from the first step (voxels about "
+                f"{self.cfg.bake_voxel_pixels:g} pixels wide, to render fast): "
+                f"{self.cfg.bake_from} baked into it, then trained on"
             )
         if self.cfg.resolutions[-1] != 0:
             return f"plenoxel lattice {' -> '.join(map(str, sizes))} (as configured)"

@@ -307,6 +307,15 @@ class OccupancyGrid(nn.Module):
             thr = min(threshold, self.opacity.mean().item())
             self.occupied.copy_(self.opacity > thr)
 
+    def occupied_box(self) -> Tensor | None:
+        """The unit-cube box (2, 3) [min, max] around the occupied cells (None: none is)."""
+        cells = self.occupied.nonzero()[:, 0]
+        if cells.numel() == 0:
+            return None
+        r = self.resolution
+        ijk = torch.stack([cells % r, (cells // r) % r, cells // (r * r)], dim=-1)
+        return torch.stack([ijk.amin(0), ijk.amax(0) + 1]).float() / r
+
     def occupancy_fraction(self) -> float:
         return self.occupied.float().mean().item()
 
