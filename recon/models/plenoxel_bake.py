@@ -37,7 +37,8 @@ def fit_sh_logits(rgb: Tensor, basis: Tensor, eps: float = 1e-3) -> Tensor:
     """SH coefficients (N, K, 3) whose sigmoid best matches colours rgb (N, D, 3) seen along
     D directions with SH basis values basis (D, K), in the least-squares sense on the logits
     (the colours clamped to [eps, 1 - eps] first): pinv(basis) (K, D) applied to logit(rgb).
-    Exact when the logits are a degree-K SH function and D >= K directions span it."""
+    Exact when the logits are a combination of the K basis functions and the D >= K
+    directions make basis of rank K."""
     logits = torch.logit(rgb.float().clamp(eps, 1.0 - eps))
     return torch.einsum("kd,ndc->nkc", torch.linalg.pinv(basis.double()).float(), logits)
 
