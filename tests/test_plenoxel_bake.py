@@ -158,18 +158,19 @@ def test_bake_from_through_the_cli(tmp_path):
 
     ws = str(sphere_workspace(tmp_path))
     small = ["--set", "log2_table_size=14", "--set", "n_max=128", "--set", "n_levels=8"]
-    recon_cli("train", "-w", ws, "--method", "ngp", "--steps", "60", *small)
+    small += ["--set", "rays_per_batch=256", "--set", "samples_per_batch=0"]
+    recon_cli("train", "-w", ws, "--method", "ngp", "--steps", "40", "--eval-every", "1e5", *small)
     before = sorted(p.name for p in (tmp_path / "ws" / "runs").iterdir())
 
     def train(*args):
-        return recon_cli("train", "-w", ws, "--steps", "3", *args, check=False)
+        return recon_cli(
+            "train", "-w", ws, "--steps", "3", "--eval-every", "1e5", *args, check=False
+        )
 
     wrong_method = train("--method", "3dgs", "--bake-from", "ngp")
     assert wrong_method.returncode != 0 and "plenoxel" in wrong_method.stderr
     missing = train("--method", "plenoxel", "--bake-from", "nope")
     assert missing.returncode == 1 and "run 'nope' does not exist" in missing.stderr
-    onto_itself = train("--method", "plenoxel", "--bake-from", "ngp", "--run", "ngp", "--force")
-    assert onto_itself.returncode != 0
     assert sorted(p.name for p in (tmp_path / "ws" / "runs").iterdir()) == before
     done = train("--method", "plenoxel", "--bake-from", "ngp", "--json")
     assert done.returncode == 0, done.stderr
@@ -179,7 +180,6 @@ def test_bake_from_through_the_cli(tmp_path):
     again = train("--method", "plenoxel", "--bake-from", "ngp-baked", "--run", "twice")
     assert again.returncode == 1 and "no radiance field" in again.stderr
     assert len(again.stderr.strip().splitlines()) == 1
-    recon_cli("render", "-w", ws, "--run", "ngp-baked")
 
 
 def test_radiance_is_the_field_the_renderers_evaluate():
