@@ -9,9 +9,9 @@ Protocol: the runs bench.py left in bench/work/lego-200 (one per method, named a
 `recon eval` (every 8th test view, as bench.py) where it has one.
 
 The neural fields (ngp, nerf) are also baked into a plenoxel lattice and trained on for
-`--bake-budget` seconds (`recon train --method plenoxel --bake-from RUN`, run RUN-baked, made
-once and kept), evaluated, and rendered the same way: how fast the same scene renders once
-baked, and at what PSNR against the run it came from.
+`--bake-budget` seconds (`recon train --method plenoxel --bake-from RUN`, run RUN-baked,
+made again only when RUN is newer), evaluated, and rendered the same way: how fast the same
+scene renders once baked, and at what PSNR against the run it came from.
 
     python pipelines/bench_render.py [--methods 3dgs,ngp] [--scales 1,4] [--bakes ngp,nerf]
 """
@@ -53,9 +53,10 @@ def recon(*args: str) -> None:
 
 def bake(ws: Path, run: str, budget: float) -> str:
     """RUN-baked: `run` baked into a plenoxel lattice, trained on for `budget` seconds and
-    evaluated on every 8th test view; made once, then reused."""
+    evaluated on every 8th test view; made again only when `run`'s model is newer."""
     baked = f"{run}-baked"
-    if not (ws / "runs" / baked / "model.pt").exists():
+    source, done = ws / "runs" / run / "model.pt", ws / "runs" / baked / "model.pt"
+    if not done.exists() or done.stat().st_mtime < source.stat().st_mtime:
         print(f"bench render: baking {run} ({budget:g} s) ...", flush=True)
         recon(
             "train", "-w", str(ws), "--method", "plenoxel", "--bake-from", run,
@@ -66,7 +67,7 @@ def bake(ws: Path, run: str, budget: float) -> str:
     return baked
 
 
-def test_psnr(ws: Path, run: str) -> float | None:
+def eval_psnr(ws: Path, run: str) -> float | None:
     """The mean PSNR of the run's last `recon eval`, if it has one."""
     path = ws / "runs" / run / "eval" / "metrics.json"
     return json.loads(path.read_text())["mean"]["psnr"] if path.exists() else None
@@ -161,7 +162,7 @@ def main(
             "run": run,
             "method": doc["method"] + (" (baked)" if doc["config"].get("bake_from") else ""),
             "model_mb": (ws / "runs" / run / "model.pt").stat().st_size / 1e6,
-            "test_psnr": test_psnr(ws, run),
+            "test_psnr": eval_psnr(ws, run),
             "scales": [],
         }
         for scale in (float(s) for s in scales.split(",")):
