@@ -176,10 +176,11 @@ class PlenoxelModel(Model):
     def to_unit(self, x: Tensor) -> Tensor:
         return scene_to_unit_cube(x, self.aabb, self.scene.unbounded)
 
-    def _density_scale(self) -> float:
-        """sigma = relu(d) * res / box side: d = 1 gives optical thickness ~1 per voxel."""
+    def _density_scale(self, res: int | None = None) -> float:
+        """sigma = relu(d) * res / box side: d = 1 gives optical thickness ~1 per voxel (res:
+        the lattice's, by default the current one)."""
         side = float((self.aabb[1] - self.aabb[0]).max())
-        return self.res / side * (0.5 if self.scene.unbounded else 1.0)
+        return (res or self.res) / side * (0.5 if self.scene.unbounded else 1.0)
 
     def _sigma_unit(self, x_unit: Tensor) -> Tensor:
         d = self.grid.query(x_unit, ["density"])["density"][:, 0]
@@ -483,34 +484,30 @@ class PlenoxelModel(Model):
         candidates = None
         if occupancy is not None:
             candidates = vertices_in_cells(occupancy.occupied.cpu(), occupancy.resolution, res)
-        side = float((self.aabb[1] - self.aabb[0]).max())
-        scale = res / side * (0.5 if self.scene.unbounded else 1.0)  # `_density_scale` at res
         flat, density, sh = bake_lattice(
             source, res, self.aabb, self.scene.unbounded, self.cfg.sh_degree,
-            self.cfg.bake_directions, scale, self.cfg.prune_density, candidates,
+            self.cfg.bake_directions, self._density_scale(res), self.cfg.prune_density,
+            candidates,
         )  # fmt: skip
         dev = self.aabb.device
         self.grid.set_rows(flat.to(dev), {"density": density.to(dev), "sh": sh.to(dev)}, res)
         self._density_changed()
-        cell = side / self.cfg.occupancy_res
-        self.occupancy.occupied.fill_(True)
-        self.occupancy.update(self._sigma_unit, cell, warmup=False, generator=self.generator)
+        self.occupancy.occupied.fill_(True)  # every cell evaluated, then kept as the density says
+        self._update_occupancy(warmup=False)
         if self.cfg.finish_weight > 0:
             self.prune_unseen(data)
         self._make_optimizer()
+
+    def _update_occupancy(self, warmup: bool) -> None:
+        cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
+        self.occupancy.update(self._sigma_unit, cell, warmup=warmup, generator=self.generator)
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float]:
         if step == 0 and self.cfg.bake_from:
             self.bake(data)
         self._maybe_upsample(step, data)
         if step % self.cfg.occupancy_every == 0:
-            cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
-            self.occupancy.update(
-                self._sigma_unit,
-                cell,
-                warmup=step < 32 and not self.cfg.bake_from,
-                generator=self.generator,
-            )
+            self._update_occupancy(warmup=step < 32 and not self.cfg.bake_from)
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
         out = self.render_rays(batch["origins"], batch["directions"], jitter=True)
