@@ -4,7 +4,14 @@ import pytest
 import torch
 
 from recon.volrend import OccupancyGrid, ray_aabb_intersect, scene_to_unit_cube
-from recon.volrend.march_kernels import march_occupied
+from recon.volrend.march_kernels import (
+    cell_exit,
+    last_in_cell,
+    march_interval,
+    march_occupied,
+    tile_order,
+    warp,
+)
 
 
 @pytest.mark.parametrize(
@@ -112,3 +119,59 @@ def test_numba_march_cap_matches_the_torch_twin_and_keeps_the_first_samples(unbo
     rank = torch.arange(full[0].numel()) - first[full[0]]
     kept = rank < cap
     assert torch.equal(full[1][kept], fast[1]) and torch.equal(full[2][kept], fast[2])
+
+
+def test_cell_exit_worked_example():
+    """A ray from unit-cube point (0.1, 0.5, 0.9) along (0.5, -0.25, 0) (per unit t), 4 cells
+    an axis: it is in cell (0, 2, 3); it leaves x's cell at x = 0.25 (t = 0.3) before y's at
+    y = 0.5 (t = 0; it starts on that face, running down: cell 2 spans [0.5, 0.75), so the
+    face ahead is 0.5, t = 0) -> 0. From (0.1, 0.6, 0.9): y's face 0.5 at t = 0.4, x's at 0.3."""
+    assert cell_exit((0.1, 0.5, 0.9, 0.5, -0.25, 0.0), 0.1, 0.5, 0.9, 4) == pytest.approx(0.0)
+    assert cell_exit((0.1, 0.6, 0.9, 0.5, -0.25, 0.0), 0.1, 0.6, 0.9, 4) == pytest.approx(0.3)
+    # x = 1 counts as the last cell; running along -z the ray leaves through z = 0.75
+    assert cell_exit((1.0, 0.6, 0.9, 0.0, 0.0, -1.0), 1.0, 0.6, 0.9, 4) == pytest.approx(0.15)
+
+
+@pytest.mark.parametrize("cone", [0.0, 1 / 16])
+def test_last_in_cell_skips_only_intervals_inside_the_cell(cone):
+    """Brute force: every interval k' in (k, last] has its midpoint in interval k's cell, and
+    interval last + 1 ends past the cell (last is the largest such index), with jitter u."""
+    g = torch.Generator().manual_seed(1)
+    n, step, t_far = 8, 0.013, math.inf
+    checked = 0
+    for _ in range(200):
+        a = torch.rand(3, generator=g).double().tolist()
+        b = torch.nn.functional.normalize(torch.randn(3, generator=g).double(), dim=0).tolist()
+        u, t_min = float(torch.rand(1, generator=g)), 0.02
+        s_min = warp(t_min, step, cone, t_far)
+        k = int(torch.randint(1, 40, (1,), generator=g))
+        mid = 0.5 * sum(march_interval(k, t_min, math.inf, s_min, u, step, cone, t_far))
+        x = [a[i] + mid * b[i] for i in range(3)]
+        if not all(0.0 <= v < 1.0 for v in x):
+            continue
+        cell = [int(v * n) for v in x]
+        t_exit = cell_exit((*a, *b), *x, n)
+        last = last_in_cell(k, t_exit, s_min, u, step, cone, t_far)
+        for kk in range(k + 1, last + 1):
+            m = 0.5 * sum(march_interval(kk, t_min, math.inf, s_min, u, step, cone, t_far))
+            assert [int((a[i] + m * b[i]) * n) for i in range(3)] == cell
+        if last > k:
+            assert (
+                march_interval(last + 1, t_min, math.inf, s_min, u, step, cone, t_far)[1] > t_exit
+            )
+            checked += 1
+    assert checked > 50
+
+
+def test_tile_order_deals_whole_tiles_to_every_thread():
+    """A permutation of the pixels; each thread's run (one of `threads` equal runs, numba's
+    static schedule) holds whole 8 x 8 tiles from the top and the bottom of the image."""
+    H, W, threads = 40, 48, 2
+    order = tile_order(H, W, threads)
+    assert torch.equal(order.sort().values, torch.arange(H * W))
+    for run in order.view(threads, -1):
+        y, x = run // W, run % W
+        tiles = (y // 8) * (W // 8) + x // 8
+        assert (torch.bincount(tiles, minlength=30)[tiles.unique()] == 64).all()
+        assert y.min() < 8 and y.max() >= H - 8
+        assert (tiles[::64].repeat_interleave(64) == tiles).all()  # one tile at a time

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from recon.volrend import (
@@ -281,3 +282,22 @@ def test_seeded_grid_keeps_its_seed_through_warm_up_then_follows_the_density():
     assert (
         sphere_frac < grid.occupancy_fraction() < 4 * sphere_frac
     )  # the whole sphere, not the seed
+
+
+def test_coarse_level_is_the_any_pool_and_follows_every_write():
+    g = torch.Generator().manual_seed(0)
+    grid = OccupancyGrid(8)
+    grid.occupied.copy_(torch.rand(8**3, generator=g) > 0.97)
+    coarse, res = grid.coarse(4)
+    assert res == 2
+    cells = grid.occupied.view(8, 8, 8).nonzero()  # (k, j, i)
+    expected = torch.zeros(2, 2, 2, dtype=torch.bool)
+    expected[cells[:, 0] // 4, cells[:, 1] // 4, cells[:, 2] // 4] = True
+    assert torch.equal(coarse.view(2, 2, 2), expected) and not expected.all()
+    assert grid.coarse(4)[0] is coarse  # kept while the bitfield is unchanged
+    grid.occupied.fill_(True)  # written in place
+    assert grid.coarse(4)[0].all() and grid.occupied_box().tolist() == [[0, 0, 0], [1, 1, 1]]
+    grid.load_state_dict({"opacity": grid.opacity, "occupied": torch.zeros(8**3, dtype=torch.bool)})
+    assert not grid.coarse(4)[0].any() and grid.occupied_box() is None
+    with pytest.raises(ValueError, match="divide"):
+        grid.coarse(3)

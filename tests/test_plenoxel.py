@@ -1,8 +1,10 @@
 import math
 from unittest.mock import patch
 
+import pytest
 import torch
 
+from recon.cameras import camera_rays
 from recon.fields.voxels import SparseVoxelGrid, trilinear_corners
 from recon.models.plenoxel import PlenoxelConfig, PlenoxelModel
 from recon.models.raymarch import render_image
@@ -213,9 +215,11 @@ def test_live_cells_are_the_cells_with_a_positive_vertex():
 
 
 def test_one_pass_render_matches_the_sample_path_after_more_training():
-    """`render` on the CPU (`render_lattice`: no sample stored) against `render_rays` chunk by
-    chunk: the same rgb, opacity and (where something is hit) depth within float32 rounding, also after the density
-    changed under a cached `live_cells` (two more training steps)."""
+    """`render` on the CPU (`render_lattice`: no sample stored, rays in `tile_order`) against
+    `render_rays` chunk by chunk: the same opacity and (where something is hit) depth within
+    float32 rounding, also after the density changed under a cached `live_cells` (two more
+    training steps); the same rgb within rounding with the SH evaluated along each ray, and
+    within 2e-3 with it evaluated per vertex as seen from the camera centre (`render`'s way)."""
     model, data = trained_sphere(steps=80)
     for extra in (0, 2):
         for s in range(80, 80 + extra):
@@ -223,11 +227,15 @@ def test_one_pass_render_matches_the_sample_path_after_more_training():
         for i in (0, 3):
             fast = model.render(data.cameras[i])
             slow = render_image(model._render_chunk, data.cameras[i].to("cpu"), model.cfg.chunk)
-            for k in ("rgb", "acc"):
-                assert (fast[k] - slow[k]).abs().max() < 1e-4, k
+            assert (fast["acc"] - slow["acc"]).abs().max() < 1e-4
             hit = slow["acc"] > 0.1  # depth = expected t / acc: compared where it is defined
             assert (fast["depth"] - slow["depth"])[hit].abs().max() < 1e-4 * slow["depth"].max()
             assert hit.sum() > 20
+            error = (fast["rgb"] - slow["rgb"]).abs()
+            assert error.max() < 2e-3 and error.mean() < 1e-4
+            origins, dirs, _ = camera_rays(data.cameras[i], 0)
+            per_ray, _, _ = model._render_fused(origins.reshape(-1, 3), dirs.reshape(-1, 3))
+            assert (per_ray - slow["rgb"].reshape(-1, 3)).abs().max() < 1e-4
 
 
 def test_lean_preset_stores_degree_one_sh_and_renders_like_the_sample_path():
@@ -238,7 +246,7 @@ def test_lean_preset_stores_degree_one_sh_and_renders_like_the_sample_path():
     assert model.grid.data["sh"].shape[1] == 3 * 4  # 4 bases of degree <= 1 per channel
     fast = model.render(data.cameras[0])
     slow = render_image(model._render_chunk, data.cameras[0].to("cpu"), model.cfg.chunk)
-    assert (fast["rgb"] - slow["rgb"]).abs().max() < 1e-4
+    assert (fast["rgb"] - slow["rgb"]).abs().max() < 2e-3  # colour per vertex: see above
     assert (fast["acc"] > 0.1).sum() > 20
 
 
@@ -355,3 +363,30 @@ def test_the_march_range_shrunk_to_the_occupied_box_keeps_every_sample():
     assert model.occupancy.occupied_box() is None
     t_min, t_max, _ = model._ray_range(o, d)
     assert torch.equal(t_min, t_max)
+
+
+@pytest.mark.parametrize("cone_angle", [0.0, 1 / 64])
+def test_empty_space_skipping_keeps_every_sample(cone_angle):
+    """With occupied cells only around a small ball (most coarse cells empty, so the march
+    jumps over whole coarse cells, occupancy cells and dead lattice cells), the one-pass march
+    keeps exactly the samples of marching every step (the two-stage twin), with and without
+    jitter, and the one-pass render matches the sample path."""
+    model, data = trained_sphere(steps=80, cone_angle=cone_angle)
+    occ = model.occupancy
+    centres = cell_points(torch.arange(occ.resolution**3), occ.resolution, torch.full((1, 3), 0.5))
+    occ.occupied &= ((centres * 2 - 1) * 0.7 - 0.1).norm(dim=-1) < 0.35
+    coarse, _ = occ.coarse(4)
+    assert 0 < coarse.sum() < 0.5 * coarse.numel()
+    rays = data.rays()
+    o, d = rays["origins"][::3], rays["directions"][::3]
+    t_min, t_max, cone = model._ray_range(o, d)
+    assert cone == cone_angle
+    for u in (None, torch.rand(o.shape[0], generator=torch.Generator().manual_seed(3))):
+        ri, t0, t1 = model.kept_samples(o, d, u)
+        ri2, s0, s1 = model._march_then_terminate(o, d, t_min, t_max, cone, u)
+        assert ri.numel() > 500 and torch.equal(ri, ri2)
+        assert torch.allclose(t0, s0) and torch.allclose(t1, s1)
+    fast = model.render(data.cameras[2])
+    slow = render_image(model._render_chunk, data.cameras[2], model.cfg.chunk)
+    assert (fast["acc"] - slow["acc"]).abs().max() < 1e-4
+    assert (fast["rgb"] - slow["rgb"]).abs().max() < 2e-3

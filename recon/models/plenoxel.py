@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -31,7 +32,12 @@ from recon.io.packed import (
 from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.plenoxel_bake import bake_lattice, vertices_in_cells
-from recon.models.plenoxel_march import Lattice, march_lattice_terminated, render_lattice
+from recon.models.plenoxel_march import (
+    Lattice,
+    march_lattice_terminated,
+    render_lattice,
+    vertex_logits,
+)
 from recon.models.raymarch import render_image, sample_rays
 from recon.models.registry import load_model
 from recon.models.schedules import exp_decay_lr
@@ -44,6 +50,7 @@ from recon.volrend import (
     terminated_mask,
     volume_render,
 )
+from recon.volrend.march_kernels import tile_order
 
 # The finest lattice sized to the training photos (`finest_lattice`): a multiple of this many
 # vertices, within these bounds. The bound above is the size used before the rule (measured to
@@ -256,8 +263,9 @@ class PlenoxelModel(Model):
 
     def _lattice(self, cone: float, live: Tensor | None) -> Lattice:
         """The model's grids as the one-pass kernels read them (`plenoxel_march.Lattice`)."""
+        coarse, coarse_res = self.occupancy.coarse(math.gcd(self.occupancy.resolution, 4))
         return Lattice(
-            self.occupancy.occupied, self.occupancy.resolution, live, self.aabb,
+            self.occupancy.occupied, self.occupancy.resolution, coarse, coarse_res, live, self.aabb,
             self.scene.unbounded, self._step_t(), cone, self.grid.links,
             self.grid.data["density"][:, 0], self.res, self._density_scale(),
             self.cfg.eps_transmittance,
@@ -543,7 +551,9 @@ class PlenoxelModel(Model):
         origins, dirs, z_per_t = camera_rays(camera, 0)
         H, W = z_per_t.shape
         o, d = origins.reshape(-1, 3).float(), dirs.reshape(-1, 3).float()
-        rgb, t, acc = self._render_fused(o, d)
+        # bounded: the colour of each vertex as seen from the camera centre (`vertex_logits`)
+        centre = None if self.scene.unbounded else camera.centers[0].float()
+        rgb, t, acc = self._render_fused(o, d, tile_order(H, W, numba.get_num_threads()), centre)
         depth = surface_depth(t, acc) * z_per_t.reshape(-1).to(t)
         return {"rgb": rgb.reshape(H, W, 3), "depth": depth.reshape(H, W), "acc": acc.reshape(H, W)}
 
@@ -551,13 +561,39 @@ class PlenoxelModel(Model):
         out = self.render_rays(origins, directions, jitter=False)
         return out["rgb"], out["depth"], out["acc"]
 
-    def _render_fused(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(rgb (R, 3), expected t (R,), acc (R,)) of CPU rays, as `render_rays` gives them."""
+    def _render_fused(
+        self,
+        origins: Tensor,
+        dirs: Tensor,
+        order: Tensor | None = None,
+        centre: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """(rgb (R, 3), expected t (R,), acc (R,)) of CPU rays, as `render_rays` gives them
+        (order: `render_lattice`'s); with the camera centre (3,) of a bounded scene's rays, the
+        colour is evaluated per vertex as seen from it (`plenoxel_march.vertex_logits`)."""
         t_min, t_max, cone = self._ray_range(origins, dirs)
-        basis = sh_basis(self.cfg.sh_degree, dirs)
         lattice = self._lattice(cone, self.live_cells())
-        sh = self.grid.data["sh"]
-        return render_lattice(origins, dirs, t_min, t_max, basis, sh, self.background, lattice)
+        sh = self.grid.data["sh"].detach()
+        if centre is None:
+            basis, logits = sh_basis(self.cfg.sh_degree, dirs), None
+        else:  # no SH along the rays
+            basis = dirs.new_empty(dirs.shape[0], 0)
+            logits = vertex_logits(self._vertex_points(), centre, sh)
+        return render_lattice(
+            origins, dirs, t_min, t_max, basis, sh, self.background, lattice, order, logits
+        )
+
+    def _vertex_points(self) -> Tensor:
+        """(M, 3) the scene point of each row's lattice vertex (a bounded scene's), made again
+        only once the rows changed (`coords` replaced or written to)."""
+        coords = self.grid.coords
+        made = self.__dict__.get("_points_cache")
+        if made is None or made[0] is not coords or made[1] != coords._version:
+            r = self.res
+            ijk = torch.stack([coords % r, (coords // r) % r, coords // (r * r)], dim=-1)
+            points = self.aabb[0] + ijk.to(self.aabb) / (r - 1) * (self.aabb[1] - self.aabb[0])
+            made = self.__dict__["_points_cache"] = (coords, coords._version, points)
+        return made[2]
 
     # ---- state ---------------------------------------------------------------------------
     def file_state(self) -> dict:

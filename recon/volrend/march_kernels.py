@@ -9,6 +9,7 @@ same packed samples.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -108,6 +109,58 @@ def ray_unit_point(o, d, t, lo, hi, unbounded, affine):
     if unbounded:
         return unit_point(o, d, t, lo, hi, True)
     return affine_point(affine, t)
+
+
+@numba.njit(cache=True, inline="always")
+def cell_exit(affine, x0, x1, x2, n):
+    """The t at which a bounded ray, unit-cube point a + t b (`box_affine`), leaves the cell of
+    an n^3 grid over the unit cube that holds its point x = (x0, x1, x2) (inside the cube):
+    the nearest of the three cell faces ahead of it (Amanatides & Woo 1987, "A Fast Voxel
+    Traversal Algorithm for Ray Tracing"). Cell i along an axis is min(int(x n), n - 1), as
+    `cell_occupied` and `voxel_kernels.lattice_cell` (n = res - 1) find it."""
+    a0, a1, a2, b0, b1, b2 = affine
+    return min(_face_ahead(a0, b0, x0, n), _face_ahead(a1, b1, x1, n), _face_ahead(a2, b2, x2, n))
+
+
+@numba.njit(cache=True, inline="always")
+def _face_ahead(a, b, x, n):
+    """t of the face of x's cell (n cells along the axis, unit-cube point a + t b) that the ray
+    crosses next along this axis; inf when the ray runs parallel to it."""
+    i = min(int(x * n), n - 1)
+    if b > 0.0:
+        return ((i + 1) / n - a) / b
+    if b < 0.0:
+        return (i / n - a) / b
+    return math.inf
+
+
+@numba.njit(cache=True, inline="always")
+def last_in_cell(k, t_exit, s_min, u, step, cone, t_far):
+    """Empty-space skipping for a march whose interval k has its midpoint in an empty cell
+    that the ray leaves at t_exit: the last interval index every interval up to which lies
+    before t_exit (interval k' ends at unwarp(s_min + k' + 1 - u) <= t_exit, see
+    `march_interval`), so its midpoint is in the same empty cell and the march can resume at
+    the returned index + 1 with exactly the samples a step-by-step march keeps. At least k."""
+    s = min(warp(t_exit, step, cone, t_far) - s_min + u, 1e18)  # t_exit may be inf
+    return max(k, int(math.floor(s)) - 1)  # noqa: RUF046 (numba typing)
+
+
+@numba.njit(cache=True, inline="always")
+def skip_empty(k, x0, x1, x2, affine, coarse, coarse_res, occ, res, s_min, u, spacing):
+    """One step of a bounded march through a two-level occupancy (a coarse any-pooled
+    bitfield `coarse` over coarse_res^3 cells and the occupancy bitfield occ over res^3): -1
+    when interval k's midpoint x is in an occupied cell (the caller samples it), else the
+    last interval index that lies in the same empty cell (`last_in_cell`, >= k), taken in
+    the coarse cell when that is empty. x outside the unit cube (x0 < 0): k, one step."""
+    if x0 < 0.0:
+        return k
+    step, cone, t_far = spacing
+    if not cell_occupied(x0, x1, x2, coarse, coarse_res):
+        t_exit = cell_exit(affine, x0, x1, x2, coarse_res)
+        return last_in_cell(k, t_exit, s_min, u, step, cone, t_far)
+    if not cell_occupied(x0, x1, x2, occ, res):
+        return last_in_cell(k, cell_exit(affine, x0, x1, x2, res), s_min, u, step, cone, t_far)
+    return -1
 
 
 @numba.njit(cache=True, inline="always")
@@ -315,3 +368,19 @@ def march_occupied(
         ends,
     )
     return torch.from_numpy(ray_indices), torch.from_numpy(starts), torch.from_numpy(ends)
+
+
+@functools.lru_cache(maxsize=8)
+def tile_order(height: int, width: int, threads: int, tile: int = 8) -> Tensor:
+    """The order in which a parallel CPU kernel should take the rays of a height x width image
+    (ray y * width + x) -> (height * width,) int64: tile x tile pixel blocks (neighbouring rays
+    read the same cells while they are in cache), dealt round-robin to the threads (numba's
+    static schedule gives thread i the i-th of `threads` equal runs of the order), so every
+    thread gets tiles from all over the image, not one band of it. Lego-200: one band holds
+    twice the samples of the other. Do not modify the result: it is cached."""
+    y, x = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    tiles_x = -(-width // tile)
+    block = (y // tile) * tiles_x + x // tile
+    inside = (y % tile) * tile + x % tile
+    key = ((block % threads) * (block.max() + 1) + block) * tile * tile + inside
+    return torch.argsort(key.reshape(-1))

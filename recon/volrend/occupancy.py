@@ -309,12 +309,39 @@ class OccupancyGrid(nn.Module):
 
     def occupied_box(self) -> Tensor | None:
         """The unit-cube box (2, 3) [min, max] around the occupied cells (None: none is)."""
+        return self._derived("box", self._occupied_box)
+
+    def _occupied_box(self) -> Tensor | None:
         cells = self.occupied.nonzero()[:, 0]
         if cells.numel() == 0:
             return None
         r = self.resolution
         ijk = torch.stack([cells % r, (cells // r) % r, cells // (r * r)], dim=-1)
         return torch.stack([ijk.amin(0), ijk.amax(0) + 1]).float() / r
+
+    def coarse(self, factor: int) -> tuple[Tensor, int]:
+        """The bitfield any-pooled over factor^3 blocks of cells -> ((res / factor)^3,) bool
+        and res / factor (factor must divide res): a coarse cell is occupied iff one of its
+        cells is, so a march may skip an empty coarse cell whole (`march_kernels.skip_empty`)."""
+        r, f = self.resolution, factor
+        if r % f:
+            raise ValueError(f"the coarse factor {f} must divide the resolution {r}")
+        c = r // f
+        pooled = self._derived(
+            f"coarse{f}",
+            lambda: self.occupied.view(c, f, c, f, c, f).any(5).any(3).any(1).reshape(-1),
+        )
+        return pooled, c
+
+    def _derived(self, key: str, make):
+        """make() of the current bitfield, made again only once `occupied` changed: it is
+        another tensor, or every write to it in place (load_state_dict too) bumped its version
+        counter."""
+        cache = self.__dict__.setdefault("_derived_cache", {})
+        made = cache.get(key)
+        if made is None or made[0] is not self.occupied or made[1] != self.occupied._version:
+            made = cache[key] = (self.occupied, self.occupied._version, make())
+        return made[2]
 
     def occupancy_fraction(self) -> float:
         return self.occupied.float().mean().item()
