@@ -39,7 +39,12 @@ def command(workspace, run, force, as_json, **options):
         emit_json(result)
     else:
         w, h = result["resolution"]
+        first = (
+            f"; the first took {result['ms_first_frame']:.0f} ms"
+            if result["frames"] > 1 and result["ms_first_frame"] > 2 * result["ms_per_frame_median"]
+            else ""
+        )  # kernels compiled or loaded from their cache on first use
         click.echo(
-            f"render: {result['frames']} frames of {w}x{h} at {result['ms_per_frame']:.1f} ms/frame "
-            f"-> {result['out']}"
+            f"render: {result['frames']} frames of {w}x{h} at "
+            f"{result['ms_per_frame_median']:.1f} ms/frame (median{first}) -> {result['out']}"
         )

@@ -139,6 +139,7 @@ def render_run(
         "out": str(out_dir),
         "ms_per_frame": round(1000 * float(np.mean(times)), 2),
         "ms_per_frame_median": round(1000 * float(np.median(times)), 2),
+        "ms_first_frame": round(1000 * times[0], 2),
         "resolution": list(sizes[0]),
         "downscale": k_out,
         "rendered_at": {"downscale": k_render, "size": [int(cams.width[0]), int(cams.height[0])]},
