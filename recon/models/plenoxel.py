@@ -31,7 +31,7 @@ from recon.io.packed import (
 )
 from recon.metrics.image import training_psnr
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
-from recon.models.plenoxel_bake import bake_lattice, vertices_in_cells
+from recon.models.plenoxel_bake import bake_lattice, lattice_points, vertices_in_cells
 from recon.models.plenoxel_march import (
     Lattice,
     march_lattice_terminated,
@@ -589,9 +589,8 @@ class PlenoxelModel(Model):
         coords = self.grid.coords
         made = self.__dict__.get("_points_cache")
         if made is None or made[0] is not coords or made[1] != coords._version:
-            r = self.res
-            ijk = torch.stack([coords % r, (coords // r) % r, coords // (r * r)], dim=-1)
-            points = self.aabb[0] + ijk.to(self.aabb) / (r - 1) * (self.aabb[1] - self.aabb[0])
+            unit = lattice_points(coords, self.res).to(self.aabb)
+            points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
             made = self.__dict__["_points_cache"] = (coords, coords._version, points)
         return made[2]
 
