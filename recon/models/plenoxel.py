@@ -173,6 +173,7 @@ class PlenoxelModel(Model):
         self.generator = torch.Generator().manual_seed(0)
         self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
         self._live: Tensor | None = None  # `live_cells`, computed on demand
+        self._points: Tensor | None = None  # `_vertex_points`, likewise
         self._make_optimizer()
 
     # ---- field ---------------------------------------------------------------------------
@@ -290,7 +291,7 @@ class PlenoxelModel(Model):
         return self._live
 
     def _density_changed(self) -> None:
-        self._live = None
+        self._live = self._points = None
 
     @torch.no_grad()
     def _march_then_terminate(self, origins, dirs, t_min, t_max, cone, u):
@@ -584,15 +585,12 @@ class PlenoxelModel(Model):
         )
 
     def _vertex_points(self) -> Tensor:
-        """(M, 3) the scene point of each row's lattice vertex (a bounded scene's), made again
-        only once the rows changed (`coords` replaced or written to)."""
-        coords = self.grid.coords
-        made = self.__dict__.get("_points_cache")
-        if made is None or made[0] is not coords or made[1] != coords._version:
-            unit = lattice_points(coords, self.res).to(self.aabb)
-            points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
-            made = self.__dict__["_points_cache"] = (coords, coords._version, points)
-        return made[2]
+        """(M, 3) the scene point of each row's lattice vertex (a bounded scene's), kept until
+        the rows change (`_density_changed`, as `live_cells`)."""
+        if self._points is None:
+            unit = lattice_points(self.grid.coords, self.res).to(self.aabb)
+            self._points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
+        return self._points
 
     # ---- state ---------------------------------------------------------------------------
     def file_state(self) -> dict:

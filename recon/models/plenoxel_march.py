@@ -46,6 +46,32 @@ from recon.volrend.march_kernels import (
 from recon.volrend.volrend import _TAU_CAP
 
 
+@numba.njit(cache=True, inline="always")
+def _skip_to(k, x0, x1, x2, affine, unbounded, coarse, coarse_res, occ, occ_res, live, use_live,
+             res, s_min, u, spacing):  # fmt: skip
+    """Where a plenoxel march goes from its interval k, midpoint x: -1 to sample it (in an
+    occupied cell and, when use_live, a live lattice cell), else the interval index to go on
+    after. Contracted (unbounded) rays take one step (k): their cells are not boxes along the
+    ray. Bounded rays go on after the last interval in the same empty cell
+    (`march_kernels.skip_empty`), or the same dead lattice cell (no vertex with density > 0:
+    sigma = 0 there)."""
+    if unbounded:
+        if not cell_occupied(x0, x1, x2, occ, occ_res):
+            return k
+    else:
+        last = skip_empty(
+            k, x0, x1, x2, affine, coarse, coarse_res, occ, occ_res, s_min, u, spacing
+        )
+        if last >= 0:
+            return last
+    if use_live and not live[lattice_cell_index(x0, x1, x2, res)]:
+        if unbounded:
+            return k
+        step, cone, t_far = spacing
+        return last_in_cell(k, cell_exit(affine, x0, x1, x2, res - 1), s_min, u, step, cone, t_far)
+    return -1
+
+
 @numba.njit(cache=True)
 def _march_ray(
     o, d, t_min, t_max, spacing, u, lo, hi, unbounded, coarse, coarse_res, occ, occ_res, live,
@@ -69,21 +95,12 @@ def _march_ray(
         if not end > start:
             continue
         x0, x1, x2 = ray_unit_point(o, d, 0.5 * (start + end), lo, hi, unbounded, affine)
-        if unbounded:  # contracted: the cells are not boxes along the ray
-            if not cell_occupied(x0, x1, x2, occ, occ_res):
-                continue
-        else:
-            last = skip_empty(
-                k, x0, x1, x2, affine, coarse, coarse_res, occ, occ_res, s_min, u, spacing
-            )
-            if last >= 0:
-                k = last
-                continue
-        if use_live and not live[lattice_cell_index(x0, x1, x2, res)]:
-            if not unbounded:  # no vertex of this lattice cell has density > 0: sigma = 0 here
-                k = last_in_cell(
-                    k, cell_exit(affine, x0, x1, x2, res - 1), s_min, u, step, cone, t_far
-                )
+        last = _skip_to(
+            k, x0, x1, x2, affine, unbounded, coarse, coarse_res, occ, occ_res, live, use_live,
+            res, s_min, u, spacing,
+        )  # fmt: skip
+        if last >= 0:
+            k = last
             continue
         sigma = max(lattice_value(x0, x1, x2, res, links, density), 0.0) * scale
         if sigma > 0.0:
@@ -222,23 +239,15 @@ def _render(origins, dirs, t_min, t_max, basis, order, spacing, lo, hi, unbounde
                     continue
                 mid = 0.5 * (start + end)
                 x0, x1, x2 = ray_unit_point(o, d, mid, lo, hi, unbounded, affine)
-                if unbounded:  # contracted: the cells are not boxes along the ray
-                    if not cell_occupied(x0, x1, x2, occ, occ_res):
-                        continue
-                else:
-                    last = skip_empty(
-                        k, x0, x1, x2, affine, coarse, coarse_res, occ, occ_res, s_min, 0.0, spacing
-                    )  # fmt: skip
-                    if last >= 0:
-                        k = last
-                        continue
+                last = _skip_to(
+                    k, x0, x1, x2, affine, unbounded, coarse, coarse_res, occ, occ_res, live,
+                    True, res, s_min, 0.0, spacing,
+                )  # fmt: skip
+                if last >= 0:
+                    k = last
+                    continue
                 i0, i1, i2, f0, f1, f2 = lattice_cell(x0, x1, x2, res)
                 cell = i0 + (res - 1) * (i1 + (res - 1) * i2)
-                if not live[cell]:
-                    if not unbounded:  # on to the next lattice cell the ray enters
-                        t_exit = cell_exit(affine, x0, x1, x2, res - 1)
-                        k = last_in_cell(k, t_exit, s_min, 0.0, step, cone, t_far)
-                    continue
                 if cell != last_cell:  # a new cell: its 8 corners' rows (-1: pruned)
                     last_cell, coloured = cell, False
                     c = 0
