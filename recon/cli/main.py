@@ -14,6 +14,7 @@ from recon.cli.common import fail
 # imports: torch, trimesh, pycolmap) is loaded only when that command runs or help lists it.
 COMMANDS = {
     "sfm": ("sfm_cmd", "sfm"),
+    "mvs": ("mvs_cmd", "command"),
     "train": ("train_cmd", "command"),
     "render": ("render_cmd", "command"),
     "mesh": ("mesh_cmd", "command"),
@@ -57,7 +58,7 @@ def cli(ctx: click.Context, verbose: bool) -> None:
     """recon: photos -> camera poses -> trained scene -> renders, meshes, honest metrics.
 
     Stages share one workspace directory (-w WS) and can be rerun on their own:
-    sfm -> train -> render / mesh / export -> eval; `recon status` shows what is stale.
+    sfm -> [mvs] -> train -> render / mesh / export -> eval; `recon status` shows what is stale.
     """
     ctx.ensure_object(dict)
     ctx.obj["verbose"] = verbose

@@ -180,7 +180,9 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     normals = None
     if has_sdf and method == "marching-cubes" and len(mesh.vertices):
         normals = field_normals(model, mesh.vertices, device)
-    previews = write_previews(ws, run, mesh, scene, cfg, normals)
+    previews = write_previews(
+        ws.mesh_dir(run), mesh, scene, cfg.previews, cfg.preview_max_side, normals
+    )
     sim = (
         scene.scene_from_world
     )  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
@@ -215,19 +217,19 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
 
 
 def write_previews(
-    ws: Workspace, run: str, mesh, scene, cfg: MeshConfig, normals: np.ndarray | None = None
+    out_dir, mesh, scene, count: int, max_side: int, normals: np.ndarray | None = None
 ) -> list[str]:
-    """Shaded pictures of `mesh` (in the scene frame, as the cameras) from `cfg.previews`
-    cameras, at most `cfg.preview_max_side` px -> mesh/preview_<k>.png; the names. The first
+    """Shaded pictures of `mesh` (in the scene frame, as the cameras) from `count` cameras, at
+    most `max_side` px -> out_dir/preview_<k>.png; the names. The first
     is the first held-out camera (a view no training image fixed), the others spread over the
     training cameras. Per-vertex `normals` (the field's) shade smoothly, else the faces'."""
     held_out = scene.split("test")[:1]
     train = scene.split("train")
-    picks = list(held_out) + [train[k] for k in preview_views(len(train), cfg.previews - 1)]
-    picks = picks[: cfg.previews]
+    picks = list(held_out) + [train[k] for k in preview_views(len(train), count - 1)]
+    picks = picks[:count]
     if not picks:
         return []
-    k = downscale_for_max_side(*scene.image_size("train"), cfg.preview_max_side)
+    k = downscale_for_max_side(*scene.image_size("train"), max_side)
     cams = scene.cameras(picks, "cpu", k)
     colours = None
     if getattr(mesh.visual, "kind", None) == "vertex":
@@ -245,7 +247,7 @@ def write_previews(
             normals,
         )
         name = f"preview_{j}.png"
-        write_png(ws.mesh_dir(run) / name, image)
+        write_png(out_dir / name, image)
         names.append(name)
     return names
 

@@ -171,6 +171,17 @@ class Workspace:
     def sfm_report(self) -> Path:
         return self.sfm_dir / self.SFM_REPORT
 
+    # WS/mvs/: dense depth maps, fused points and their mesh (`recon mvs`)
+    MVS_JSON, MVS_POINTS, MVS_DEPTH = "mvs.json", "points.ply", "depth"
+
+    @property
+    def mvs_dir(self) -> Path:
+        return self.root / "mvs"
+
+    @property
+    def mvs_json(self) -> Path:
+        return self.mvs_dir / self.MVS_JSON
+
     @property
     def runs_dir(self) -> Path:
         return self.root / "runs"

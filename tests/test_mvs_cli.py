@@ -1,0 +1,59 @@
+"""`recon mvs` through the real CLI: the walnut ring (real photos, reference point cloud) at a
+small size, and bad input that must leave the workspace as it was."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from recon.io.exr import read_depth_exr
+from recon.metrics.geometry import geometry_metrics
+from tests.conftest import SHARED_DATA, recon_cli
+
+WALNUT = SHARED_DATA / "robovision_mvs_walnut"
+REFERENCE = WALNUT / "reference_reconstructions" / "2016_10_24__17_43_02" / "reference.ply"
+
+
+@pytest.mark.skipif(not WALNUT.exists(), reason="../shared/data not present")
+def test_mvs_on_the_walnut_ring_lands_on_the_reference_surface(tmp_path):
+    ws = tmp_path / "ws"
+    recon_cli(
+        "sfm", "--from-transforms", str(WALNUT / "transforms.json"), "--downscale", "8",
+        "-w", str(ws),
+    )  # fmt: skip
+    out = recon_cli("mvs", "-w", str(ws), "--planes", "96", "--previews", "1", "--json")
+    result = json.loads(out.stdout)
+    assert result["views"] == 10 and result["size"] == [160, 128]
+    depths = sorted((ws / "mvs" / "depth").glob("*.exr"))
+    assert len(depths) == 10  # training views only: held-out photos are never read
+    d = read_depth_exr(depths[0])
+    assert ((d == 0) | ((d > 0.12) & (d < 0.25))).all()  # metres: the ring's radius is ~0.18
+    reference = np.asarray(trimesh.load(REFERENCE).vertices)
+    mesh = trimesh.load(ws / "mvs" / "mesh.ply")
+    m = geometry_metrics(mesh, reference, tau=0.0014, n_samples=30_000)
+    # at 1/8 a pixel is ~0.4 mm on the walnut; the sphere of its mean radius scores 1.9 mm
+    assert m["chamfer"] < 0.0012 and m["fscore"] > 0.6, m
+    points = trimesh.load(ws / "mvs" / "points.ply")
+    assert len(points.vertices) == result["points"] > 1000
+    status = recon_cli("status", "-w", str(ws)).stdout
+    assert "mvs" in status
+
+
+def test_mvs_refuses_bad_input_and_leaves_the_workspace_alone(tmp_path):
+    proc = recon_cli("mvs", "-w", str(tmp_path / "nothing"), check=False)
+    assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "nothing").exists()
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "workspace.json").write_text(json.dumps({"schema_version": 1, "stages": {}}))
+    before = sorted(p.name for p in ws.iterdir())
+    proc = recon_cli("mvs", "-w", str(ws), check=False)
+    assert proc.returncode != 0 and "sfm" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert sorted(p.name for p in ws.iterdir() if not p.name.startswith(".")) == [
+        n for n in before if not n.startswith(".")
+    ]
+    proc = recon_cli("mvs", "-w", str(ws), "--window", "4", check=False)
+    assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1
