@@ -53,7 +53,7 @@ bench: install
 	$(BIN)/python pipelines/bench.py
 	$(BIN)/python pipelines/bench_render.py
 	$(BIN)/python pipelines/bench_real.py
-	$(BIN)/python pipelines/bench_mesh.py --methods ngp,plenoxel,3dgs,sdf
+	$(BIN)/python pipelines/bench_mesh.py --methods ngp,plenoxel,3dgs,sdf,mvs
 	$(BIN)/python pipelines/bench_mesh.py --scenes sample --methods sdf,3dgs --curve 60,120,300,600
 
 clean:

@@ -6,12 +6,15 @@ Protocol, through the real `recon` CLI as a user would run it (2 CPU threads):
   TSDF; `recon eval` against sample_data/mesh.ply.
 - walnut: `recon sfm --from-transforms robovision_mvs_walnut/transforms.json --downscale 4`;
   the same per method; `recon eval --gt-points reference.ply` (the reference point cloud).
+- method `mvs`: no training; `recon mvs` (plane-sweep stereo on the training photos, its mesh
+  by TSDF fusion of the checked depth maps), then `recon eval --run mvs`; its row's time is
+  the whole `recon mvs` wall time.
 
 Geometry: accuracy / completeness (mean nearest-neighbour distances each way), Chamfer (their
 mean), precision / recall / F-score at tau = 1 % of the ground truth's bounding-box diagonal
 (recon eval's default), normal consistency when the reference is a mesh; ORIGINAL units.
 
-    python pipelines/bench_mesh.py [--scenes sample,walnut] [--methods ngp,3dgs] [--budget 240]
+    python pipelines/bench_mesh.py [--scenes sample,walnut] [--methods ngp,3dgs,mvs] [--budget 240]
     python pipelines/bench_mesh.py --scenes sample --methods sdf,3dgs --curve 60,120,300,600
 
 Writes bench/results/mesh_<scene>.json and .md; the JSON holds every number the CLI returned.
@@ -51,6 +54,7 @@ MESHERS = {
     "plenoxel": ["marching-cubes", "tsdf"],
     "nerf": ["marching-cubes"],
     "sdf": ["marching-cubes"],  # the zero level set of the distance
+    "mvs": ["tsdf"],  # `recon mvs`: TSDF fusion of its checked depth maps (no training)
 }
 GEOMETRY_KEYS = (
     "accuracy",
@@ -86,6 +90,30 @@ def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: 
         "mesh_json": mesh,
     }
     return row
+
+
+def mvs_and_score(ws: Path, reuse: bool, eval_args: list[str]) -> tuple[dict, dict]:
+    """`recon mvs` (or, with reuse, its last result), then `recon eval --run mvs` of its mesh:
+    the record that stands in for training, and one result row."""
+    if reuse and (ws / "mvs" / "mvs.json").exists():
+        mvs = {**json.loads((ws / "mvs" / "mvs.json").read_text()), "reused": True}
+    else:
+        print(f"bench_mesh: {ws.name} mvs ...", file=sys.stderr, flush=True)
+        mvs = recon("mvs", "-w", str(ws), "--force")
+    geo = recon("eval", "-w", str(ws), "--run", "mvs", *eval_args)["mvs"]["geometry"]
+    row = {
+        "run": "mvs",
+        "mesher": "tsdf",
+        "resolution": mvs["config"]["resolution"],
+        "mesh_seconds": mvs["seconds"],
+        "faces": mvs["faces"],
+        "components": mvs.get("components"),
+        "test_psnr": None,  # nothing is rendered
+        "geometry_status": geo["status"],
+        **{k: geo[k] for k in GEOMETRY_KEYS if k in geo},
+        "mesh_json": mvs,
+    }
+    return {"steps": "–", "wall_s": mvs["seconds"], "views": mvs["views"]}, row
 
 
 def train_or_reuse(
@@ -141,6 +169,10 @@ def bench_scene(
         "training": {},
     }
     for method in methods:
+        if method == "mvs":
+            out["training"][method], row = mvs_and_score(ws, reuse, SCENES[scene]["eval"])
+            out["rows"].append(row)
+            continue
         out["training"][method] = train_or_reuse(ws, method, budget, reuse)
         for mesher in MESHERS[method]:
             print(f"bench_mesh: {scene} {method} {mesher} ...", file=sys.stderr, flush=True)

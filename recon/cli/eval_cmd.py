@@ -9,6 +9,7 @@ from recon.cli.progress import Progress
 from recon.eval.stage import EvalConfig, evaluate
 from recon.options import config_option, from_options
 from recon.workspace import Workspace
+from recon.workspace.workspace import MVS_RESULT
 
 
 @click.command("eval")
@@ -26,6 +27,7 @@ from recon.workspace import Workspace
 @config_option(EvalConfig, "max_side", type=click.IntRange(0))
 @config_option(EvalConfig, "downscale", type=click.IntRange(0))
 @config_option(EvalConfig, "border", type=click.FloatRange(0.0, 0.5, min_open=True))
+@config_option(EvalConfig, "mvs")
 @config_option(EvalConfig, "pictures")
 @config_option(EvalConfig, "device")
 @click.option("--force", is_flag=True, help="Evaluate stale runs too.")
@@ -50,6 +52,14 @@ def command(workspace, runs, force, as_json, **options):
         )
         return
     for run, m in results.items():
+        if run == MVS_RESULT:
+            geo = m["geometry"]
+            click.echo(
+                f"eval: mvs mesh: Chamfer {geo['chamfer']:.4g}, F-score {geo['fscore']:.3f}"
+                if geo.get("status") == "ok"
+                else f"eval: mvs mesh: {geo['status']}"
+            )
+            continue
         mean = m["mean"]
         lp = f"{mean['lpips']:.4f}" if "lpips" in mean else "unavailable"
         geo = m["geometry"]
@@ -63,6 +73,7 @@ def command(workspace, runs, force, as_json, **options):
             f"eval: {run} at {w}x{h}: PSNR {mean['psnr']:.2f} dB (border {mean['psnr_border']:.2f}), "
             f"SSIM {mean['ssim']:.4f}, LPIPS {lp}{g}"
         )
-    click.echo(
-        f"report: {ws.report_html} (terminal: {ws.report_md.name}, plot: {ws.speed_plot.name})"
-    )
+    if set(results) - {MVS_RESULT}:
+        click.echo(
+            f"report: {ws.report_html} (terminal: {ws.report_md.name}, plot: {ws.speed_plot.name})"
+        )

@@ -27,6 +27,7 @@ from recon.train.resolution import output_levels
 from recon.workspace import Workspace, WorkspaceError, atomic_write_json
 from recon.workspace.runs import load_run
 from recon.workspace.scene import level_size
+from recon.workspace.workspace import MVS_RESULT
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,9 @@ class EvalConfig:
     )
     border: float = opt(
         0.15, "PSNR is also reported on the outer band of this fraction of each side"
+    )
+    mvs: bool = opt(
+        True, "also score the geometry of `recon mvs`'s mesh (WS/mvs/mesh.ply) when it exists"
     )
     pictures: bool = opt(
         True, "write photo / render / error / depth pictures of each view for report.html"
@@ -176,10 +180,6 @@ def geometry_section(
     scene=None,
     poses: dict | None = None,
 ) -> dict:
-    import trimesh
-
-    from recon.metrics.geometry import geometry_metrics
-
     gt_path = cfg.gt_points or cfg.gt_mesh or scene_gt_mesh
     if not gt_path:
         return {"status": "no ground truth (pass --gt-mesh or --gt-points)"}
@@ -190,8 +190,17 @@ def geometry_section(
             "status": f"no mesh for run '{run}': run `recon mesh -w {ws.root} --run {run}` first",
             "gt": str(gt_path),
         }
+    return mesh_geometry(meshes[0], gt_path, cfg, scene, poses)
+
+
+def mesh_geometry(mesh_path, gt_path, cfg: EvalConfig, scene=None, poses=None) -> dict:
+    """Geometry metrics of the mesh at mesh_path (original units) against the ground truth."""
+    import trimesh
+
+    from recon.metrics.geometry import geometry_metrics
+
     gt = trimesh.load(str(gt_path), process=False, force=None)
-    pred = trimesh.load(str(meshes[0]), process=False, force="mesh")
+    pred = trimesh.load(str(mesh_path), process=False, force="mesh")
     aligned = align_to_reference(pred, poses or {})
     diag = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
     tau = cfg.tau or 0.01 * diag
@@ -204,7 +213,7 @@ def geometry_section(
     return {
         "status": "ok",
         "gt": str(gt_path),
-        "mesh": str(meshes[0]),
+        "mesh": str(mesh_path),
         "aligned": aligned,
         "tau": tau,
         **{k: float(v) for k, v in m.items() if np.isscalar(v)},
@@ -225,16 +234,25 @@ def evaluate(
     from recon.metrics.lpips import NETWORK, load_lpips
     from recon.workspace.scene import load_scene
 
-    runs = runs or [r for r in ws.runs() if ws.model_path(r).exists()]
-    if not runs and cfg.gt_poses:  # the sfm stage alone: pose accuracy, before any training
+    asked_mvs = MVS_RESULT in runs  # `--run mvs`: the mesh of `recon mvs`
+    if asked_mvs and not ws.mvs_mesh.exists():
+        raise WorkspaceError(f"{ws.root} has no mvs mesh: run `recon mvs -w {ws.root}` first")
+    runs = [r for r in runs if r != MVS_RESULT]
+    if not runs and not asked_mvs:
+        runs = [r for r in ws.runs() if ws.model_path(r).exists()]
+    with_mvs = asked_mvs or (cfg.mvs and ws.mvs_mesh.exists())
+    if not runs and cfg.gt_poses and not with_mvs:  # the sfm stage alone: pose accuracy
         poses = pose_section(ws, cfg)
         atomic_write_json(ws.pose_accuracy_json, poses)
         return {"sfm": {"pose": poses}}
-    if not runs:
+    if not runs and not with_mvs:
         raise WorkspaceError(
             f"no trained run in {ws.root}: run `recon train` first "
             "(or pass --gt-poses to evaluate the sfm poses alone)"
         )
+    if not runs:
+        scene = load_scene(ws, with_points=False)
+        return {MVS_RESULT: mvs_metrics(ws, cfg, scene, pose_section(ws, cfg))}
     device = pick_device(cfg.device)
     lpips_model = load_lpips(device) if cfg.lpips else None
     lpips_note = (
@@ -271,6 +289,8 @@ def evaluate(
         results[run] = metrics
         if progress:
             progress("eval", k + 1, len(runs), run=run, psnr=round(metrics["mean"]["psnr"], 2))
+    if with_mvs:
+        results[MVS_RESULT] = mvs_metrics(ws, cfg, scene, poses)
     # concurrent evaluations of one workspace (a sweep's jobs) write the report one at a time,
     # each from every metrics.json on disk, so the last one written lists them all
     with ws.writer_lock("report", wait=True):
@@ -280,6 +300,19 @@ def evaluate(
         plot_sfm(ws, load_scene(ws))
         write_html_report(ws, done)
     return results
+
+
+def mvs_metrics(ws: Workspace, cfg: EvalConfig, scene, poses: dict) -> dict:
+    """The geometry of `recon mvs`'s mesh -> WS/mvs/metrics.json (it has no images to score)."""
+    gt_path = cfg.gt_points or cfg.gt_mesh or scene.gt_mesh
+    geometry = (
+        mesh_geometry(ws.mvs_mesh, gt_path, cfg, scene, poses)
+        if gt_path
+        else {"status": "no ground truth (pass --gt-mesh or --gt-points)"}
+    )
+    metrics = _finite({"run": MVS_RESULT, "method": "mvs", "geometry": geometry})
+    atomic_write_json(ws.mvs_metrics_json, metrics)
+    return metrics
 
 
 def _run_doc(ws: Workspace, run: str) -> dict:

@@ -163,6 +163,7 @@ def run_mvs(ws: Workspace, cfg: MvsConfig, force: bool = False, progress=None) -
             "median_score": round(float(scores.median()), 4),
             "kept_fraction": round(float((kept > 0).float().mean()), 4),
             "seconds": round(time.time() - started, 2),
+            "config": asdict(cfg),
         }
     )
     atomic_write_json(ws.mvs_json, result)
@@ -202,12 +203,12 @@ def _write(ws, scene, idx, cams, kept, points, colours, mesh, cfg: MvsConfig) ->
         stats = {"faces": 0}
         if len(mesh.faces):
             world = transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
-            write_mesh(world, tmp / "mesh.ply")
+            write_mesh(world, tmp / ws.mvs_mesh.name)
             stats = mesh_stats(world)
     return {
         "points": len(all_points),
         "points_path": str(ws.mvs_dir / ws.MVS_POINTS),
-        "mesh_path": str(ws.mvs_dir / "mesh.ply") if stats["faces"] else None,
+        "mesh_path": str(ws.mvs_mesh) if stats["faces"] else None,
         **{k: (v.item() if isinstance(v, np.generic) else v) for k, v in stats.items()},
         "previews": previews,
     }

@@ -29,7 +29,7 @@ from recon.train.resolution import (
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.registration import partial_warning
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
-from recon.workspace.workspace import RUN_SCHEMA_VERSION, software_versions
+from recon.workspace.workspace import MVS_RESULT, RUN_SCHEMA_VERSION, software_versions
 
 MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
 ROLLBACK_LR_FACTOR = 0.5  # every rollback halves all learning rates for the rest of the process
@@ -84,6 +84,10 @@ def heldout_views(scene: Scene, n: int) -> list[int]:
 
 def check_run(ws: Workspace, run: str, resume: bool, force: bool) -> bool:
     """Refuse what cannot be done; True when an existing run is to be replaced (--force)."""
+    if run == MVS_RESULT:
+        raise WorkspaceError(
+            f"'{run}' names the output of `recon mvs` in reports: choose another --run name"
+        )
     exists = ws.run_dir(run).exists()
     if exists and not resume and not force:
         raise WorkspaceError(

@@ -31,6 +31,7 @@ from recon.workspace.hashing import hash_tree
 
 SCHEMA_VERSION = 1
 RUN_SCHEMA_VERSION = 1  # the layout of runs/RUN/run.json
+MVS_RESULT = "mvs"  # the name `recon eval` gives WS/mvs/'s mesh, beside the runs (not a run name)
 
 # Migrations from older schemas: MIGRATIONS[v] turns a version-v document into version v+1.
 MIGRATIONS: dict[int, callable] = {}
@@ -181,6 +182,14 @@ class Workspace:
     @property
     def mvs_json(self) -> Path:
         return self.mvs_dir / self.MVS_JSON
+
+    @property
+    def mvs_mesh(self) -> Path:
+        return self.mvs_dir / "mesh.ply"
+
+    @property
+    def mvs_metrics_json(self) -> Path:
+        return self.mvs_dir / "metrics.json"
 
     @property
     def runs_dir(self) -> Path:
