@@ -38,6 +38,28 @@ def test_mvs_on_the_walnut_ring_lands_on_the_reference_surface(tmp_path):
     assert len(points.vertices) == result["points"] > 1000
     status = recon_cli("status", "-w", str(ws)).stdout
     assert "mvs" in status
+    # an sdf run asked to fits the fused points, and depends on the mvs stage from then on
+    train = recon_cli(
+        "train", "-w", str(ws), "--method", "sdf", "--steps", "2", "--eval-every", "1e6",
+        "--surface-points", "on",
+    )  # fmt: skip
+    assert f"fitting {result['points']} surface points" in train.stdout + train.stderr
+    record = json.loads((ws / "workspace.json").read_text())["stages"]["train/sdf"]
+    assert record["upstream"] == ["sfm", "mvs"]
+    off = recon_cli(
+        "train",
+        "-w",
+        str(ws),
+        "--method",
+        "sdf",
+        "--run",
+        "plain",
+        "--steps",
+        "1",
+        "--eval-every",
+        "1e6",
+    )  # fmt: skip (the default: off)
+    assert "surface points" not in off.stdout + off.stderr
 
 
 def test_mvs_refuses_bad_input_and_leaves_the_workspace_alone(tmp_path):
@@ -57,3 +79,16 @@ def test_mvs_refuses_bad_input_and_leaves_the_workspace_alone(tmp_path):
     ]
     proc = recon_cli("mvs", "-w", str(ws), "--window", "4", check=False)
     assert proc.returncode != 0 and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_surface_points_without_mvs_is_a_one_line_error(tmp_path):
+    from tests.conftest import sphere_workspace
+
+    ws = sphere_workspace(tmp_path, n_train=3, size=16)
+    proc = recon_cli(
+        "train", "-w", str(ws), "--method", "sdf", "--steps", "1", "--surface-points", "on",
+        check=False,
+    )  # fmt: skip
+    assert proc.returncode != 0 and "recon mvs" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (ws / "runs" / "sdf").exists()

@@ -69,6 +69,7 @@ def _bakeable_model(ws: Workspace, spec, run: str) -> tuple[Path, int]:
 @config_option(TrainConfig, "checkpoint_every_s")
 @config_option(TrainConfig, "keep_checkpoints", type=click.IntRange(1))
 @config_option(TrainConfig, "seed")
+@config_option(TrainConfig, "surface_points")
 @config_option(TrainConfig, "threads")
 @config_option(TrainConfig, "device")
 @click.option(

@@ -155,6 +155,13 @@ def transform_mesh(
     return out
 
 
+def mesh_to_original_units(mesh: trimesh.Trimesh, scene_from_world) -> trimesh.Trimesh:
+    """A mesh in the normalized scene frame moved back to the original units:
+    x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s."""
+    sim = scene_from_world
+    return transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
+
+
 def write_mesh(mesh: trimesh.Trimesh, path: Path) -> Path:
     """Write PLY (binary), OBJ or GLB by suffix, atomically; vertex colours included."""
     path = Path(path)

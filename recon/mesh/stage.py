@@ -21,8 +21,8 @@ from recon.mesh.cleanup import (
     keep_seen_components,
     keep_visible_faces,
     mesh_stats,
+    mesh_to_original_units,
     remove_small_components,
-    transform_mesh,
     write_mesh,
 )
 from recon.mesh.marching_cubes import (
@@ -183,10 +183,8 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     previews = write_previews(
         ws.mesh_dir(run), mesh, scene, cfg.previews, cfg.preview_max_side, normals
     )
-    sim = (
-        scene.scene_from_world
-    )  # x_scene = s R x_world + t  ->  x_world = (1/s) R^T x_scene - R^T t / s
-    mesh = transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
+    sim = scene.scene_from_world
+    mesh = mesh_to_original_units(mesh, sim)
     if normals is not None:  # directions turn with R^T: n_world = R^T n_scene
         mesh.vertex_normals = normals @ np.asarray(sim.R, np.float64)
     out_path = ws.mesh_dir(run) / f"mesh.{cfg.format}"

@@ -49,11 +49,14 @@ class TrainData:
     cameras: C pinhole cameras of size (W, H).
     alpha: (C, H, W) float32 coverage where the photos had an alpha channel, else None (a
     model may then composite them on other backgrounds: `recomposite`).
+    surface_points: (N, 3) points on the scene's surfaces found by multi-view stereo (`recon
+    mvs`), in the scene frame, or None; a model may pin its surface to them.
     """
 
     images: Tensor
     cameras: Cameras
     alpha: Tensor | None = None
+    surface_points: Tensor | None = None
     _levels: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -78,7 +81,10 @@ class TrainData:
                 alpha = np.stack([resize_area(a, w, h) for a in self.alpha.cpu().numpy()])
                 alpha = torch.from_numpy(alpha).to(self.images.device)
             self._levels[factor] = TrainData(
-                torch.from_numpy(small).to(self.images.device), self.cameras.resized(w, h), alpha
+                torch.from_numpy(small).to(self.images.device),
+                self.cameras.resized(w, h),
+                alpha,
+                self.surface_points,
             )
         return self._levels[factor]
 
@@ -247,6 +253,7 @@ class MethodSpec:
     resolution: ResolutionPolicy = ResolutionPolicy()  # how the working resolution is chosen
     starts_from_splats: bool = False  # its config takes `init_ply`: a splat PLY to start from
     starts_from_fields: bool = False  # its config takes `bake_from`: a model with `radiance`
+    uses_surface_points: bool = False  # its training uses `TrainData.surface_points`
 
 
 METHODS: dict[str, MethodSpec] = {}

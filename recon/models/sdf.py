@@ -121,6 +121,12 @@ class SDFConfig:
         "lambda of the eikonal term, against the colour MSE (NeuS's 0.1 is against an L1 colour loss, whose gradient is ~10x the MSE's at these errors; 0.1 here: lego-200 24.7 dB, sample_data F 0.90)",
     )
     eikonal_points: int = opt(2048, "points drawn uniformly in the box each step for it")
+    points_weight: float = opt(
+        1.0,
+        "weight of the mean |f| at multi-view-stereo surface points (`recon mvs`), when the "
+        "training data has them (Geo-Neus, Fu et al. 2022, Sec. 3.2; 0 = off)",
+    )
+    points_per_step: int = opt(4096, "surface points drawn each step for that term")
     rays_per_batch: int = opt(1024, "rays of the first training step")
     samples_per_batch: int = opt(
         1 << 15, "target rendered samples per step: the ray batch adapts (0 = fixed)"
@@ -366,6 +372,15 @@ class SDFModel(Model):
             self.environment is not None or self.outer is not None,
         )
 
+    def _surface_points_loss(self, data: TrainData) -> Tensor:
+        """mean |f| (in box half-sizes) over points_per_step of the data's surface points: the
+        zero level set is pulled through what multi-view stereo found (0 without them)."""
+        points = data.surface_points
+        if points is None or len(points) == 0 or self.cfg.points_weight <= 0:
+            return self.log_beta.new_zeros(())
+        pick = torch.randint(0, len(points), (self.cfg.points_per_step,), generator=self.generator)
+        return self.field.sdf(self.to_field(points[pick.to(points.device)])).abs().mean()
+
     # ---- Model interface ---------------------------------------------------------------------
     def replan(self, schedule_steps: int, step: int) -> int:
         cfg = refit_schedules(self._planned, self.cfg, REPLAN_FRACTIONS, schedule_steps, step)
@@ -404,7 +419,9 @@ class SDFModel(Model):
         box = torch.rand(cfg.eikonal_points, 3, generator=self.generator) * 2 - 1
         _, box_grad, _ = sdf_and_gradient(self.field, box.to(self.aabb), create_graph=True)
         eikonal = eikonal_loss(torch.cat([grad, box_grad]))
+        on_points = self._surface_points_loss(data)
         loss = mse + cfg.eikonal_weight * eikonal + cfg.mask_weight * mask
+        loss = loss + cfg.points_weight * on_points
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -417,6 +434,7 @@ class SDFModel(Model):
             "loss": loss.item(),
             "psnr": training_psnr(mse),
             "eikonal": eikonal.item(),
+            "surface_points": on_points.item(),
             "beta": self.beta().item() * self.half_size,
             "samples_per_ray": n_samples / n_rays,
             "rays": n_rays,
@@ -476,6 +494,11 @@ def build(config: SDFConfig, scene: SceneInfo) -> SDFModel:
 RESOLUTION = ResolutionPolicy(pixels_per_s=10e3, pixels_per_step=1024, min_epochs=1.0, max_side=800)
 SPEC = register(
     MethodSpec(
-        name="sdf", config_cls=SDFConfig, build=build, presets=PRESETS, resolution=RESOLUTION
+        name="sdf",
+        config_cls=SDFConfig,
+        build=build,
+        presets=PRESETS,
+        resolution=RESOLUTION,
+        uses_surface_points=True,
     )
 )

@@ -24,8 +24,8 @@ from recon.io.ply import write_points_ply
 from recon.mesh.cleanup import (
     keep_seen_components,
     mesh_stats,
+    mesh_to_original_units,
     remove_small_components,
-    transform_mesh,
     write_mesh,
 )
 from recon.mesh.stage import write_previews
@@ -202,7 +202,7 @@ def _write(ws, scene, idx, cams, kept, points, colours, mesh, cfg: MvsConfig) ->
         previews = write_previews(tmp, mesh, scene, cfg.previews, 320) if len(mesh.faces) else []
         stats = {"faces": 0}
         if len(mesh.faces):
-            world = transform_mesh(mesh, 1.0 / sim.scale, sim.R.T, -sim.R.T @ sim.t / sim.scale)
+            world = mesh_to_original_units(mesh, sim)
             write_mesh(world, tmp / ws.mvs_mesh.name)
             stats = mesh_stats(world)
     return {

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from recon.io.ply import read_points_ply
 from recon.models.registry import config_from_json, import_methods, pick_device, save_model
 from recon.train.checkpoint import has_checkpoint, load_latest_checkpoint, save_checkpoint
 from recon.train.config import TrainConfig, build_config
@@ -126,6 +127,7 @@ def train(
             f"unknown method {cfg.method!r} (available: {', '.join(sorted(methods))})"
         )
     spec = methods[cfg.method]
+    surface_points_source(ws, cfg, spec)  # refuses `--surface-points on` without mvs, up front
     if cfg.threads:
         set_threads(cfg.threads)
     device = pick_device(cfg.device)
@@ -172,6 +174,29 @@ def training_images_line(ws: Workspace, train: int, test: int) -> str:
     return line
 
 
+def surface_points_source(ws: Workspace, cfg: TrainConfig, spec) -> Path | None:
+    """WS/mvs/points.ply when the option asks for it and the method fits surface points; None
+    otherwise. Asked for without a done and fresh mvs stage (a stale one was made from other
+    cameras), it is an error, not a silent fallback."""
+    if cfg.surface_points == "off" or not spec.uses_surface_points:
+        return None
+    path = ws.mvs_dir / ws.MVS_POINTS
+    state = ws.status().get("mvs", {}).get("state", "missing")
+    if state != "done" or not path.exists():
+        raise WorkspaceError(
+            f"--surface-points on needs `recon mvs -w {ws.root}` first (the mvs stage is {state})"
+        )
+    return path
+
+
+def load_surface_points(path: Path, scene: Scene, device) -> torch.Tensor:
+    """(N, 3) float32 points of a PLY in original units, moved into the scene frame."""
+    points, _ = read_points_ply(path)
+    return (
+        torch.from_numpy(scene.scene_from_world.apply(points.astype(np.float64))).float().to(device)
+    )
+
+
 def discard_unresumable_run(ws: Workspace, run: str) -> None:
     """A new run that failed before any checkpoint landed (disk full, unreadable scene) holds
     nothing to resume: remove it so a failed command leaves the workspace as it was."""
@@ -197,6 +222,10 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         log_fn(f"schedules laid out for a run of ~{method_cfg.schedule_steps} steps")
     data = load_train_data(ws, scene, "train", device, res.downscale)
     log_fn(training_images_line(ws, len(data), len(scene.split("test"))))
+    points_from = surface_points_source(ws, cfg, spec)
+    if points_from is not None:
+        data.surface_points = load_surface_points(points_from, scene, device)
+        log_fn(f"fitting {len(data.surface_points)} surface points of recon mvs ({points_from})")
     held = heldout_views(scene, cfg.eval_views)
     model = spec.build(method_cfg, scene.info).to(device)
     if note := model.plan_note(data):
@@ -377,9 +406,9 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
     ws.record_stage(
         f"train/{run}",
         config={"train": asdict(cfg), "method": asdict(method_cfg)},
-        inputs={"cameras": ws.cameras_json},
+        inputs={"cameras": ws.cameras_json, **({"mvs": points_from} if points_from else {})},
         outputs={"model": ws.model_path(run)},
-        upstream=["sfm"],
+        upstream=["sfm"] + (["mvs"] if points_from else []),
         started=started,
         ended=time.time(),
         extra={"stop_reason": reason, "steps": st.step},
