@@ -27,6 +27,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -69,11 +70,32 @@ GEOMETRY_KEYS = (
 )
 
 
-def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: list[str]) -> dict:
+def keep_picture(mesh_path: str, picture: Path | None) -> dict:
+    """The mesh file's size on disk, and its first shaded preview copied to `picture` (the
+    workspace's is overwritten by the next mesher of the same run)."""
+    mesh_path = Path(mesh_path)
+    out = {"mesh_mb": round(mesh_path.stat().st_size / 1e6, 2)}
+    preview = mesh_path.parent / "preview_0.png"
+    if picture is not None and preview.exists():
+        picture.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(preview, picture)
+        out["picture"] = picture.name
+    return out
+
+
+def mesh_and_score(
+    ws: Path,
+    run: str,
+    mesher: str,
+    resolution: int,
+    eval_args: list[str],
+    picture: Path | None = None,
+) -> dict:
     """`recon mesh` with one method, then `recon eval` of that mesh -> one result row."""
     mesh = recon(
         "mesh", "-w", str(ws), "--run", run, "--method", mesher, "--resolution", str(resolution)
     )
+    kept = keep_picture(mesh["path"], picture)
     ev = recon("eval", "-w", str(ws), "--run", run, "--no-lpips", *eval_args)[run]
     geo = ev["geometry"]
     row = {
@@ -83,6 +105,7 @@ def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: 
         "mesh_seconds": mesh["seconds"],
         "faces": mesh["faces"],
         "components": mesh["components"],
+        **kept,
         "test_psnr": ev["mean"].get("psnr"),
         "depth_abs_rel": ev["mean"].get("depth_abs_rel"),
         "geometry_status": geo["status"],
@@ -92,7 +115,9 @@ def mesh_and_score(ws: Path, run: str, mesher: str, resolution: int, eval_args: 
     return row
 
 
-def mvs_and_score(ws: Path, reuse: bool, eval_args: list[str]) -> tuple[dict, dict]:
+def mvs_and_score(
+    ws: Path, reuse: bool, eval_args: list[str], picture: Path | None = None
+) -> tuple[dict, dict]:
     """`recon mvs` (or, with reuse, its last result), then `recon eval --run mvs` of its mesh:
     the record that stands in for training, and one result row."""
     if reuse and (ws / "mvs" / "mvs.json").exists():
@@ -108,6 +133,7 @@ def mvs_and_score(ws: Path, reuse: bool, eval_args: list[str]) -> tuple[dict, di
         "mesh_seconds": mvs["seconds"],
         "faces": mvs["faces"],
         "components": mvs.get("components"),
+        **keep_picture(mvs["mesh_path"], picture),
         "test_psnr": None,  # nothing is rendered
         "geometry_status": geo["status"],
         **{k: geo[k] for k in GEOMETRY_KEYS if k in geo},
@@ -154,8 +180,20 @@ def train_or_reuse(
 
 
 def bench_scene(
-    scene: str, methods: list[str], budget: float, resolution: int, work: Path, reuse: bool = False
+    scene: str,
+    methods: list[str],
+    budget: float,
+    resolution: int,
+    work: Path,
+    reuse: bool = False,
+    pictures: Path | None = None,
 ) -> dict:
+    """Every method's meshes of one scene, scored; each mesh's first preview copied to
+    pictures/<scene>_<run>_<mesher>.png when `pictures` is given."""
+
+    def picture(run: str, mesher: str) -> Path | None:
+        return None if pictures is None else pictures / f"{scene}_{run}_{mesher}.png"
+
     ws = work / scene
     if not (ws / "sfm" / "cameras.json").exists():
         recon("sfm", *SCENES[scene]["sfm"], "-w", str(ws))
@@ -170,7 +208,9 @@ def bench_scene(
     }
     for method in methods:
         if method == "mvs":
-            out["training"][method], row = mvs_and_score(ws, reuse, SCENES[scene]["eval"])
+            out["training"][method], row = mvs_and_score(
+                ws, reuse, SCENES[scene]["eval"], picture("mvs", "tsdf")
+            )
             out["rows"].append(row)
             continue
         out["training"][method] = train_or_reuse(ws, method, budget, reuse)
@@ -178,7 +218,14 @@ def bench_scene(
             print(f"bench_mesh: {scene} {method} {mesher} ...", file=sys.stderr, flush=True)
             try:
                 out["rows"].append(
-                    mesh_and_score(ws, method, mesher, resolution, SCENES[scene]["eval"])
+                    mesh_and_score(
+                        ws,
+                        method,
+                        mesher,
+                        resolution,
+                        SCENES[scene]["eval"],
+                        picture(method, mesher),
+                    )
                 )
             except RuntimeError as e:
                 out["rows"].append(
@@ -279,10 +326,10 @@ def markdown(res: dict) -> str:
         ),
         "",
         (
-            "| run | mesher | steps | faces | Chamfer | accuracy | completeness | precision | recall "
-            "| F-score | normal cons. | GT observed | test PSNR |"
+            "| run | mesher | steps | faces | MB | Chamfer | accuracy | completeness | precision "
+            "| recall | F-score | normal cons. | GT observed | test PSNR | picture |"
         ),
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def fmt(v, f=".4f"):
@@ -300,6 +347,7 @@ def markdown(res: dict) -> str:
                     r["mesher"],
                     str(res["training"][r["run"]]["steps"]),
                     str(r["faces"]),
+                    fmt(r.get("mesh_mb"), ".1f"),
                     fmt(r.get("chamfer")),
                     fmt(r.get("accuracy")),
                     fmt(r.get("completeness")),
@@ -308,7 +356,8 @@ def markdown(res: dict) -> str:
                     fmt(r.get("fscore"), ".3f"),
                     fmt(r.get("normal_consistency"), ".3f"),
                     fmt(r.get("gt_observed_fraction"), ".3f"),
-                    fmt(r.get("test_psnr"), ".2f") + " |",
+                    fmt(r.get("test_psnr"), ".2f"),
+                    (f"[png](mesh_previews/{r['picture']})" if r.get("picture") else "–") + " |",
                 ]
             )
         )
@@ -368,7 +417,13 @@ def main(
             continue
         load = os.getloadavg()
         res = bench_scene(
-            scene, methods.split(","), budget, resolution, Path(work) / "mesh", reuse_runs
+            scene,
+            methods.split(","),
+            budget,
+            resolution,
+            Path(work) / "mesh",
+            reuse_runs,
+            out / "mesh_previews",
         )
         res.update(
             {

@@ -1,12 +1,13 @@
 """The cross-view depth check: exact depth maps of one plane agree everywhere they overlap; a
 wrong patch in one view is voted out; the fused point is the plane's."""
 
+import pytest
 import torch
 
 from recon.cameras import Cameras
 from recon.cameras.rays import pixel_centers, unproject_pixels
 from recon.mvs.consistency import consistent_views, depth_to_world
-from recon.mvs.stage import box_depth_range, source_views
+from recon.mvs.stage import box_depth_range, source_views, view_depth_range
 
 
 def plane_rig(n=3, W=40, H=32, f=40.0, z_plane=2.0):
@@ -65,3 +66,21 @@ def test_box_depth_range_spans_the_box_corners():
     m = torch.eye(4)
     m[2, 3] = 5.0  # the box centre 5 in front of the camera
     assert box_depth_range(aabb, m) == (4.0, 6.0)
+
+
+def test_view_depth_range_comes_from_the_points_the_view_sees():
+    aabb = torch.tensor([[-4.0, -4, -4], [4, 4, 4]])  # the camera sits inside the box
+    m = torch.eye(4)
+    K = torch.tensor([[10.0, 0, 10], [0, 10, 10], [0, 0, 1]])
+    assert view_depth_range(aabb, m, K, (20, 20)) == box_depth_range(aabb, m)
+    g = torch.Generator().manual_seed(0)
+    seen = torch.cat(
+        [torch.rand(200, 2, generator=g) - 0.5, torch.rand(200, 1, generator=g) + 1], 1
+    )
+    seen[:, :2] *= seen[:, 2:]  # in the view frustum, z-depths uniform in [1, 2]
+    behind = seen * torch.tensor([1.0, 1, -1])  # not seen: the camera looks down +z
+    near, far = view_depth_range(aabb, m, K, (20, 20), torch.cat([seen, behind]))
+    z = seen[:, 2]
+    lo, hi = torch.quantile(z, torch.tensor([0.01, 0.99]))
+    assert near == pytest.approx(float(lo) / 1.2) and far == pytest.approx(float(hi) * 1.2)
+    assert view_depth_range(aabb, m, K, (20, 20), seen[:5]) == box_depth_range(aabb, m)

@@ -88,12 +88,40 @@ def box_depth_range(aabb: torch.Tensor, cam_from_world: torch.Tensor) -> tuple[f
     return max(float(z.min()), 1e-3 * far), far
 
 
-def view_depths(grey, cameras: Cameras, aabb, cfg: MvsConfig, progress=None):
-    """Plane-sweep depth (C, H, W) and score (C, H, W) of every view (grey (C, H, W))."""
+MIN_RANGE_POINTS = 20  # sparse points a view must see for them to set its depth range
+
+
+def view_depth_range(
+    aabb: torch.Tensor, cam_from_world: torch.Tensor, K: torch.Tensor, size, points=None
+) -> tuple[float, float]:
+    """The depth range swept for one view: the 1st-99th percentile of the z-depths of the sfm
+    points it sees, widened by 20 % each way and kept inside the box's range (as COLMAP's
+    patch-match stereo takes each image's range from the sparse points); the box's range
+    (`box_depth_range`) when the scene has fewer such points (imported poses). A camera inside
+    the box (a capture normalized as unbounded) would otherwise sweep from 1e-3 of the box's
+    far side and spend most planes where nothing is."""
+    near, far = box_depth_range(aabb, cam_from_world)
+    if points is None or len(points) < MIN_RANGE_POINTS:
+        return near, far
+    x = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = x[:, 2]
+    u = K[0, 0] * x[:, 0] / z + K[0, 2]
+    v = K[1, 1] * x[:, 1] / z + K[1, 2]
+    seen = (z > 0) & (u >= 0) & (u < size[0]) & (v >= 0) & (v < size[1])
+    if int(seen.sum()) < MIN_RANGE_POINTS:
+        return near, far
+    lo, hi = torch.quantile(z[seen].float(), torch.tensor([0.01, 0.99], device=z.device))
+    return max(near, float(lo) / 1.2), min(far, float(hi) * 1.2)
+
+
+def view_depths(grey, cameras: Cameras, aabb, cfg: MvsConfig, points=None, progress=None):
+    """Plane-sweep depth (C, H, W) and score (C, H, W) of every view (grey (C, H, W)); each
+    view's planes span `view_depth_range` (points: the sfm points (P, 3) or None)."""
     depths, scores = [], []
+    size = (grey.shape[2], grey.shape[1])
     for r in range(len(cameras)):
         src = source_views(cameras, r, cfg.sources)
-        near, far = box_depth_range(aabb, cameras.cam_from_world[r])
+        near, far = view_depth_range(aabb, cameras.cam_from_world[r], cameras.K[r], size, points)
         planes = inverse_depth_planes(near, far, cfg.planes).to(grey.device)
         volume = sweep_scores(
             grey[r],
@@ -116,7 +144,8 @@ def view_depths(grey, cameras: Cameras, aabb, cfg: MvsConfig, progress=None):
 def filter_depths(depths, scores, cameras: Cameras, aabb, cfg: MvsConfig):
     """Keep the depths that score >= min_score, that min_views other views agree with and whose
     point lies in the box. Returns the filtered depths (C, H, W; 0 = dropped) and, per view,
-    the fused points (N_c, 3) of the depths that point_views other views agree with."""
+    the fused points (N_c, 3) of the depths that point_views other views agree with and the
+    (H, W) masks of their pixels (for their colours)."""
     scored = torch.where(scores >= cfg.min_score, depths, 0.0)
     kept, points, colour_masks = [], [], []
     for r in range(len(cameras)):
@@ -132,14 +161,14 @@ def filter_depths(depths, scores, cameras: Cameras, aabb, cfg: MvsConfig):
 
 
 def run_mvs(ws: Workspace, cfg: MvsConfig, force: bool = False, progress=None) -> dict:
-    ws.require_fresh("sfm", force)
     if cfg.window < 3 or cfg.window % 2 == 0:
         raise WorkspaceError(f"--window must be an odd number >= 3, got {cfg.window}")
     if cfg.planes < 3:
         raise WorkspaceError(f"--planes must be at least 3, got {cfg.planes}")
+    ws.require_fresh("sfm", force)
     started = time.time()
     device = pick_device(cfg.device)
-    scene = load_scene(ws, with_points=False)
+    scene = load_scene(ws)
     idx = scene.split("train")
     if len(idx) < 2:
         raise WorkspaceError(f"mvs needs at least 2 training views, the scene has {len(idx)}")
@@ -149,7 +178,9 @@ def run_mvs(ws: Workspace, cfg: MvsConfig, force: bool = False, progress=None) -
         cams = scene.cameras(idx, device, level)
         aabb = scene.info.aabb.to(device=device, dtype=torch.float32)
         with torch.no_grad():
-            depths, scores = view_depths(rgb.mean(-1), cams, aabb, cfg, progress)
+            points = scene.info.points
+            points = None if points is None else points.to(device)
+            depths, scores = view_depths(rgb.mean(-1), cams, aabb, cfg, points, progress)
             kept, points, masks = filter_depths(depths, scores, cams, aabb, cfg)
             tcfg = TSDFConfig(resolution=cfg.resolution, truncation=cfg.truncation)
             mesh = fuse_depth_maps(cams, kept, rgb, aabb.cpu().numpy(), tcfg)
