@@ -46,20 +46,6 @@ def test_mvs_on_the_walnut_ring_lands_on_the_reference_surface(tmp_path):
     assert f"fitting {result['points']} surface points" in train.stdout + train.stderr
     record = json.loads((ws / "workspace.json").read_text())["stages"]["train/sdf"]
     assert record["upstream"] == ["sfm", "mvs"]
-    off = recon_cli(
-        "train",
-        "-w",
-        str(ws),
-        "--method",
-        "sdf",
-        "--run",
-        "plain",
-        "--steps",
-        "1",
-        "--eval-every",
-        "1e6",
-    )  # fmt: skip (the default: off)
-    assert "surface points" not in off.stdout + off.stderr
 
 
 def test_mvs_refuses_bad_input_and_leaves_the_workspace_alone(tmp_path):
@@ -92,3 +78,14 @@ def test_surface_points_without_mvs_is_a_one_line_error(tmp_path):
     assert proc.returncode != 0 and "recon mvs" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert not (ws / "runs" / "sdf").exists()
+
+
+def test_surface_points_are_off_unless_asked():
+    from recon.models.registry import import_methods
+    from recon.train.config import TrainConfig
+    from recon.train.stage import surface_points_source
+
+    sdf, ngp = import_methods()["sdf"], import_methods()["ngp"]
+    assert surface_points_source(None, TrainConfig(method="sdf"), sdf) is None  # not even read
+    asked = TrainConfig(method="ngp", surface_points="on")
+    assert surface_points_source(None, asked, ngp) is None  # ngp does not fit them

@@ -208,7 +208,7 @@ def test_surface_points_pull_the_level_set_to_them_faster():
     for with_points in (False, True):
         data.surface_points = RADIUS * x if with_points else None
         model = SDFModel(SMALL, info)
-        for step in range(60):
+        for step in range(40):
             logs = model.train_step(data, step)
         with torch.no_grad():
             off[with_points] = model.sdf(RADIUS * x).abs().mean().item()
