@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+import trimesh
 
 from recon.cameras import Cameras
 from recon.io.atomic import atomic_dir
@@ -230,7 +231,9 @@ def _write(ws, scene, idx, cams, kept, points, colours, mesh, cfg: MvsConfig) ->
             depth = np.where(kept[c] > 0, scene.depth_to_world_units(kept[c].numpy()), 0.0)
             write_depth_exr(tmp / ws.MVS_DEPTH / f"{name}.exr", depth.astype(np.float32))
         write_points_ply(tmp / ws.MVS_POINTS, sim.invert_points(all_points), colours.numpy())
-        previews = write_previews(tmp, mesh, scene, cfg.previews, 320) if len(mesh.faces) else []
+        # shaded by geometry alone: a dark object's vertex colours would hide its shape
+        plain = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        previews = write_previews(tmp, plain, scene, cfg.previews, 320) if len(mesh.faces) else []
         stats = {"faces": 0}
         if len(mesh.faces):
             world = mesh_to_original_units(mesh, sim)
