@@ -38,6 +38,10 @@ def test_mvs_on_the_walnut_ring_lands_on_the_reference_surface(tmp_path):
     assert len(points.vertices) == result["points"] > 1000
     status = recon_cli("status", "-w", str(ws)).stdout
     assert "mvs" in status
+    ev = recon_cli("eval", "-w", str(ws), "--run", "mvs", "--gt-points", str(REFERENCE), "--json")
+    geo = json.loads(ev.stdout)["mvs"]["geometry"]
+    assert geo["status"] == "ok" and geo["chamfer"] < 0.0012
+    assert (ws / "mvs" / "metrics.json").exists()
     # an sdf run asked to fits the fused points, and depends on the mvs stage from then on
     train = recon_cli(
         "train", "-w", str(ws), "--method", "sdf", "--steps", "2", "--eval-every", "1e6",

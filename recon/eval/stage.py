@@ -56,7 +56,9 @@ class EvalConfig:
         0.15, "PSNR is also reported on the outer band of this fraction of each side"
     )
     mvs: bool = opt(
-        True, "also score the geometry of `recon mvs`'s mesh (WS/mvs/mesh.ply) when it exists"
+        True,
+        "without --run: also score the geometry of `recon mvs`'s mesh (WS/mvs/mesh.ply) when "
+        "it exists (--run mvs scores it alone)",
     )
     pictures: bool = opt(
         True, "write photo / render / error / depth pictures of each view for report.html"
@@ -237,10 +239,11 @@ def evaluate(
     asked_mvs = MVS_RESULT in runs  # `--run mvs`: the mesh of `recon mvs`
     if asked_mvs and not ws.mvs_mesh.exists():
         raise WorkspaceError(f"{ws.root} has no mvs mesh: run `recon mvs -w {ws.root}` first")
+    # no --run: every trained run, and the mvs mesh when there is one (unless --no-mvs)
+    with_mvs = asked_mvs or (not runs and cfg.mvs and ws.mvs_mesh.exists())
     runs = [r for r in runs if r != MVS_RESULT]
     if not runs and not asked_mvs:
         runs = [r for r in ws.runs() if ws.model_path(r).exists()]
-    with_mvs = asked_mvs or (cfg.mvs and ws.mvs_mesh.exists())
     if not runs and cfg.gt_poses and not with_mvs:  # the sfm stage alone: pose accuracy
         poses = pose_section(ws, cfg)
         atomic_write_json(ws.pose_accuracy_json, poses)
