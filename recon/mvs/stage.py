@@ -19,6 +19,7 @@ import torch
 import trimesh
 
 from recon.cameras import Cameras
+from recon.cameras.rays import project_points
 from recon.io.atomic import atomic_dir
 from recon.io.exr import write_depth_exr
 from recon.io.ply import write_points_ply
@@ -104,11 +105,8 @@ def view_depth_range(
     near, far = box_depth_range(aabb, cam_from_world)
     if points is None or len(points) < MIN_RANGE_POINTS:
         return near, far
-    x = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    z = x[:, 2]
-    u = K[0, 0] * x[:, 0] / z + K[0, 2]
-    v = K[1, 1] * x[:, 1] / z + K[1, 2]
-    seen = (z > 0) & (u >= 0) & (u < size[0]) & (v >= 0) & (v < size[1])
+    uv, z = project_points(points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3], K)
+    seen = (z > 0) & (uv >= 0).all(-1) & (uv[:, 0] < size[0]) & (uv[:, 1] < size[1])
     if int(seen.sum()) < MIN_RANGE_POINTS:
         return near, far
     lo, hi = torch.quantile(z[seen].float(), torch.tensor([0.01, 0.99], device=z.device))
@@ -156,8 +154,9 @@ def filter_depths(depths, scores, cameras: Cameras, aabb, cfg: MvsConfig):
         inside = ((fused >= aabb[0]) & (fused <= aabb[1])).all(-1)
         keep = (scored[r] > 0) & inside
         kept.append(torch.where(keep & (count >= cfg.min_views), depths[r], 0.0))
-        points.append(fused[keep & (count >= cfg.point_views)])
-        colour_masks.append(keep & (count >= cfg.point_views))
+        confirmed = keep & (count >= cfg.point_views)
+        points.append(fused[confirmed])
+        colour_masks.append(confirmed)
     return torch.stack(kept), points, colour_masks
 
 
@@ -179,9 +178,9 @@ def run_mvs(ws: Workspace, cfg: MvsConfig, force: bool = False, progress=None) -
         cams = scene.cameras(idx, device, level)
         aabb = scene.info.aabb.to(device=device, dtype=torch.float32)
         with torch.no_grad():
-            points = scene.info.points
-            points = None if points is None else points.to(device)
-            depths, scores = view_depths(rgb.mean(-1), cams, aabb, cfg, points, progress)
+            sparse = scene.info.points  # the sfm points set each view's depth range
+            sparse = None if sparse is None else sparse.to(device)
+            depths, scores = view_depths(rgb.mean(-1), cams, aabb, cfg, sparse, progress)
             kept, points, masks = filter_depths(depths, scores, cams, aabb, cfg)
             tcfg = TSDFConfig(resolution=cfg.resolution, truncation=cfg.truncation)
             mesh = fuse_depth_maps(cams, kept, rgb, aabb.cpu().numpy(), tcfg)
