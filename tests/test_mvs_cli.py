@@ -42,6 +42,12 @@ def test_mvs_on_the_walnut_ring_lands_on_the_reference_surface(tmp_path):
     geo = json.loads(ev.stdout)["mvs"]["geometry"]
     assert geo["status"] == "ok" and geo["chamfer"] < 0.0012
     assert (ws / "mvs" / "metrics.json").exists()
+    # the reports list it beside the runs: a geometry-only row, and its mesh and preview
+    report = (ws / "report.md").read_text()
+    assert "| mvs | mvs | 160×128 |" in report and "`recon mvs`" in report
+    page = (ws / "report.html").read_text()
+    assert 'id="run-mvs"' in page and 'href="mvs/mesh.ply"' in page
+    assert 'src="mvs/preview_0.png"' in page
     # an sdf run asked to fits the fused points, and depends on the mvs stage from then on
     train = recon_cli(
         "train", "-w", str(ws), "--method", "sdf", "--steps", "2", "--eval-every", "1e6",

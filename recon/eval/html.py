@@ -16,6 +16,7 @@ from pathlib import Path
 from recon.eval.report import COLUMNS, _fmt, _size, row_cells
 from recon.eval.visuals import ERROR_MAX, KINDS
 from recon.workspace import Workspace, atomic_write_text
+from recon.workspace.workspace import MVS_RESULT
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
@@ -158,7 +159,34 @@ def videos(ws: Workspace, run: str) -> str:
     )
 
 
+def mvs_section(ws: Workspace, m: dict) -> str:
+    """The mesh of `recon mvs`: its geometry scores, a link to it and its previews."""
+    stage = json.loads(ws.mvs_json.read_text()) if ws.mvs_json.exists() else {}
+    geo = m.get("geometry", {})
+    score = (
+        f"Chamfer {_fmt(geo.get('chamfer'), 5)}, F-score {_fmt(geo.get('fscore'), 3)} at "
+        f"τ {_fmt(geo.get('tau'), 5)}"
+        if geo.get("status") == "ok"
+        else esc(geo.get("status", "not scored"))
+    )
+    shots = [ws.mvs_dir / p for p in stage.get("previews", [])]
+    imgs = "".join(
+        f'<a href="{rel(p, ws.root)}"><img src="{rel(p, ws.root)}" alt="mvs mesh preview" width="240"></a>'
+        for p in shots
+        if p.exists()
+    )
+    return (
+        f'<h3 id="run-{MVS_RESULT}">{MVS_RESULT} (multi-view stereo)</h3>'
+        f"<p>{_fmt(stage.get('views'))} depth maps at {_size(stage.get('size'))}, "
+        f"{_fmt(stage.get('faces'))} faces: "
+        f'<a href="{rel(ws.mvs_mesh, ws.root)}">{esc(ws.mvs_mesh.name)}</a>; {score}.</p>'
+        + (f'<div class="gallery">{imgs}</div>' if imgs else "")
+    )
+
+
 def run_section(ws: Workspace, run: str, m: dict) -> str:
+    if run == MVS_RESULT:
+        return mvs_section(ws, m)
     mean = m.get("mean", {})
     lp = f", LPIPS {mean['lpips']:.4f}" if "lpips" in mean else ""
     return (

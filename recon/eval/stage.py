@@ -4,6 +4,7 @@ Writes runs/<run>/eval/metrics.json, then report.md and speed_vs_error.png for a
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -253,17 +254,17 @@ def evaluate(
             f"no trained run in {ws.root}: run `recon train` first "
             "(or pass --gt-poses to evaluate the sfm poses alone)"
         )
-    if not runs:
-        scene = load_scene(ws, with_points=False)
-        return {MVS_RESULT: mvs_metrics(ws, cfg, scene, pose_section(ws, cfg))}
-    device = pick_device(cfg.device)
-    lpips_model = load_lpips(device) if cfg.lpips else None
-    lpips_note = (
-        NETWORK if lpips_model is not None else "LPIPS unavailable (weights could not be obtained)"
-    )
     scene = load_scene(ws, with_points=False)
     poses = pose_section(ws, cfg)
     results = {}
+    if runs:
+        device = pick_device(cfg.device)
+        lpips_model = load_lpips(device) if cfg.lpips else None
+        lpips_note = (
+            NETWORK
+            if lpips_model is not None
+            else "LPIPS unavailable (weights could not be obtained)"
+        )
     for k, run in enumerate(runs):
         ws.require_fresh(f"train/{run}", force)
         started = time.time()
@@ -299,6 +300,8 @@ def evaluate(
     with ws.writer_lock("report", wait=True):
         all_metrics = {r: _load_metrics(ws, r) for r in ws.runs()}
         done = {r: m for r, m in all_metrics.items() if m is not None}
+        if ws.mvs_metrics_json.exists():  # (a new `recon mvs` replaces WS/mvs/ and drops it)
+            done[MVS_RESULT] = json.loads(ws.mvs_metrics_json.read_text())
         write_report(ws, done)
         plot_sfm(ws, load_scene(ws))
         write_html_report(ws, done)
@@ -313,20 +316,18 @@ def mvs_metrics(ws: Workspace, cfg: EvalConfig, scene, poses: dict) -> dict:
         if gt_path
         else {"status": "no ground truth (pass --gt-mesh or --gt-points)"}
     )
-    metrics = _finite({"run": MVS_RESULT, "method": "mvs", "geometry": geometry})
+    stage = json.loads(ws.mvs_json.read_text()) if ws.mvs_json.exists() else {}
+    speed = {"train_wall_s": stage.get("seconds"), "trained_at": stage.get("size")}
+    metrics = _finite({"run": MVS_RESULT, "method": "mvs", "geometry": geometry, "speed": speed})
     atomic_write_json(ws.mvs_metrics_json, metrics)
     return metrics
 
 
 def _run_doc(ws: Workspace, run: str) -> dict:
-    import json
-
     return json.loads(ws.run_json(run).read_text())
 
 
 def _load_metrics(ws: Workspace, run: str) -> dict | None:
-    import json
-
     p = ws.metrics_json(run)
     return json.loads(p.read_text()) if p.exists() else None
 
