@@ -2,7 +2,10 @@
 
 import json
 import shutil
+import subprocess
+import sys
 
+import click
 import pytest
 
 from tests.conftest import SHARED_DATA, recon_cli
@@ -16,6 +19,26 @@ def test_help_lists_only_implemented_commands():
         assert cmd in out
     assert recon_cli("--version").stdout.strip().startswith("recon, version")
     assert "--from-transforms" in recon_cli("sfm", "--help").stdout
+
+
+def test_help_reads_each_commands_short_help_without_importing_it():
+    from recon.cli.main import COMMANDS, cli, command_short_help
+
+    ctx = click.Context(cli)
+    for name in COMMANDS:
+        for limit in (30, 45, 80):
+            own = cli.get_command(ctx, name).get_short_help_str(limit)
+            assert command_short_help(name, limit) == own != "", name
+    # a fresh interpreter: listing the commands loads none of them (nor torch)
+    probe = (
+        "import sys; from click.testing import CliRunner; from recon.cli.main import cli; "
+        "out = CliRunner().invoke(cli, ['--help']).output; assert 'train' in out, out; "
+        "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('recon.cli.')))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True
+    )
+    assert loaded.stdout.strip() == "['recon.cli.common', 'recon.cli.main']"
 
 
 def test_status_and_staleness_after_input_change(tmp_path, blender_dataset):
