@@ -27,7 +27,7 @@ SMALL = [
 def workspace(tmp_path_factory):
     ws = tmp_path_factory.mktemp("sdf") / "ws"
     recon_cli("sfm", "--from-transforms", str(REPO / "sample_data"), "-w", str(ws))
-    for run, steps in (("sdf", "300"), ("sphere", "1")):
+    for run, steps in (("sdf", "150"), ("sphere", "1")):
         recon_cli(
             "train", "-w", str(ws), "--method", "sdf", "--run", run, "--steps", steps,
             "--downscale", "2", "--eval-every", "1e9", "--eval-views", "1", *SMALL,
