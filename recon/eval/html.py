@@ -135,7 +135,9 @@ def mesh_gallery(ws: Workspace, run: str) -> str:
     if not ws.mesh_json(run).exists():
         return ""
     mesh = json.loads(ws.mesh_json(run).read_text())
-    path = Path(mesh["path"])
+    # the file as it is in this workspace: mesh.json's absolute path goes stale when the
+    # workspace is moved or copied
+    path = ws.mesh_dir(run) / Path(mesh["path"]).name
     text = (
         f"<h4>Mesh</h4><p>{_fmt(mesh.get('faces'))} faces, {esc(mesh.get('method', ''))}: "
         f'<a href="{rel(path, ws.root)}">{esc(path.name)}</a></p>'
