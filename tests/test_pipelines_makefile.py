@@ -2,18 +2,17 @@
 
 import shutil
 import subprocess
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.conftest import REPO
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="no make on this machine")
 
 
 def dry_run(tmp_path, *args) -> list[str]:
     out = subprocess.run(
-        ["make", "-n", "-s", "-C", str(ROOT / "pipelines"), f"WS={tmp_path / 'ws'}", *args],
+        ["make", "-n", "-s", "-C", str(REPO / "pipelines"), f"WS={tmp_path / 'ws'}", *args],
         capture_output=True,
         text=True,
         check=True,

@@ -142,13 +142,17 @@ def mesh_gallery(ws: Workspace, run: str) -> str:
         f"<h4>Mesh</h4><p>{_fmt(mesh.get('faces'))} faces, {esc(mesh.get('method', ''))}: "
         f'<a href="{rel(path, ws.root)}">{esc(path.name)}</a></p>'
     )
-    shots = [ws.mesh_dir(run) / p for p in mesh.get("previews", [])]
+    return text + preview_gallery(ws, ws.mesh_dir(run), mesh.get("previews", []))
+
+
+def preview_gallery(ws: Workspace, folder: Path, names: list[str]) -> str:
+    """The mesh previews `names` in `folder` that exist, as linked thumbnails ("" if none)."""
     imgs = "".join(
         f'<a href="{rel(p, ws.root)}"><img src="{rel(p, ws.root)}" alt="mesh preview" width="240"></a>'
-        for p in shots
+        for p in (folder / name for name in names)
         if p.exists()
     )
-    return text + (f'<div class="gallery">{imgs}</div>' if imgs else "")
+    return f'<div class="gallery">{imgs}</div>' if imgs else ""
 
 
 def videos(ws: Workspace, run: str) -> str:
@@ -171,18 +175,12 @@ def mvs_section(ws: Workspace, m: dict) -> str:
         if geo.get("status") == "ok"
         else esc(geo.get("status", "not scored"))
     )
-    shots = [ws.mvs_dir / p for p in stage.get("previews", [])]
-    imgs = "".join(
-        f'<a href="{rel(p, ws.root)}"><img src="{rel(p, ws.root)}" alt="mvs mesh preview" width="240"></a>'
-        for p in shots
-        if p.exists()
-    )
     return (
         f'<h3 id="run-{MVS_RESULT}">{MVS_RESULT} (multi-view stereo)</h3>'
         f"<p>{_fmt(stage.get('views'))} depth maps at {_size(stage.get('size'))}, "
         f"{_fmt(stage.get('faces'))} faces: "
         f'<a href="{rel(ws.mvs_mesh, ws.root)}">{esc(ws.mvs_mesh.name)}</a>; {score}.</p>'
-        + (f'<div class="gallery">{imgs}</div>' if imgs else "")
+        + preview_gallery(ws, ws.mvs_dir, stage.get("previews", []))
     )
 
 
