@@ -17,24 +17,57 @@ SAMPLE_DATA = REPO / "sample_data"
 
 
 def recon_cli(
-    *args: str, check: bool = True, timeout: float = 600, env=None
+    *args: str, check: bool = True, timeout: float = 600, env=None, subprocess_: bool = False
 ) -> subprocess.CompletedProcess:
-    """Run the real `recon` command in a subprocess (as a user or CI would)."""
-    full_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
-    proc = subprocess.run(
-        [sys.executable, "-m", "recon.cli", *args],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=full_env,
-        cwd=REPO,
-    )
+    """Run the real `recon` command line. By default its click entry point runs in this process
+    (the same parsing, stages and exit codes; a fresh interpreter costs ~3 s of imports and numba
+    cache loads per call, most of the suite's time); with `env` or `subprocess_=True` it runs
+    `python -m recon.cli` in a subprocess, as a user or CI would (environment variables that
+    torch and numba read at start-up, signals, timeouts)."""
+    if env is None and not subprocess_ and not os.environ.get("RECON_TEST_SUBPROCESS"):
+        proc = _recon_in_process(args)
+    else:
+        full_env = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
+        proc = subprocess.run(
+            [sys.executable, "-m", "recon.cli", *args],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=full_env,
+            cwd=REPO,
+        )
     if check and proc.returncode != 0:
         raise AssertionError(
             f"recon {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
         )
     return proc
+
+
+def _recon_in_process(args: tuple[str, ...]) -> subprocess.CompletedProcess:
+    """`recon ARGS` through click's test runner, from the repository as the subprocess would be,
+    restoring the thread counts a `--threads` option sets. An exception that escapes the CLI is
+    appended to stderr as the interpreter would print it."""
+    import traceback
+
+    import numba
+    import torch
+    from click.testing import CliRunner
+
+    from recon.cli.main import cli
+
+    cwd, threads, numba_threads = os.getcwd(), torch.get_num_threads(), numba.get_num_threads()
+    os.chdir(REPO)
+    try:
+        result = CliRunner().invoke(cli, list(args), prog_name="recon")
+    finally:
+        os.chdir(cwd)
+        torch.set_num_threads(threads)
+        numba.set_num_threads(numba_threads)
+    stderr = result.stderr
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        stderr += "".join(traceback.format_exception(result.exception))
+    return subprocess.CompletedProcess(["recon", *args], result.exit_code, result.stdout, stderr)
 
 
 def make_blender_dataset(root: Path, n_train: int = 4, n_test: int = 2, size: int = 16) -> Path:

@@ -1,4 +1,5 @@
-"""End-to-end CLI behaviour in subprocesses: help, version, sfm import, status, bad input."""
+"""End-to-end CLI behaviour: help, version, sfm import, status, bad input (the entry point
+`python -m recon.cli` itself in a subprocess, the rest through `recon_cli`)."""
 
 import json
 import shutil
@@ -14,11 +15,11 @@ LEGO = SHARED_DATA / "nerf_synthetic_lego_400"
 
 
 def test_help_lists_only_implemented_commands():
-    out = recon_cli("--help").stdout
+    out = recon_cli("--help", subprocess_=True).stdout
     for cmd in ("sfm", "status", "train", "render"):
         assert cmd in out
-    assert recon_cli("--version").stdout.strip().startswith("recon, version")
-    assert "--from-transforms" in recon_cli("sfm", "--help").stdout
+    assert recon_cli("--version", subprocess_=True).stdout.strip().startswith("recon, version")
+    assert "--from-transforms" in recon_cli("sfm", "--help", subprocess_=True).stdout
 
 
 def test_help_reads_each_commands_short_help_without_importing_it():

@@ -61,6 +61,7 @@ def _train_and_eval(ws, method: str, run: str) -> dict:
         *METHODS[method],
         env={"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"},
     )
+    # the evaluation runs in this process (one thread): the same for both runs
     return json.loads(
         recon_cli(
             "eval", "-w", str(ws), "--run", run, "--json", "--no-lpips", "--no-pictures"

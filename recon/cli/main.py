@@ -35,7 +35,7 @@ def command_short_help(name: str, limit: int = 45) -> str:
     for node in tree.body:
         if isinstance(node, ast.FunctionDef) and node.name == attr:
             doc = ast.get_docstring(node) or ""
-            return click.utils.make_default_short_help(doc.split("\f")[0], limit)
+            return click.Command(name, help=doc).get_short_help_str(limit)
     return ""
 
 

@@ -69,6 +69,13 @@ class EvalConfig:
     )
 
 
+def _nanmean(values: list[float]) -> float:
+    """The mean over the views where a metric is defined (not NaN); NaN if it is defined on none
+    (without numpy's empty-slice warning)."""
+    finite = [v for v in values if not math.isnan(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
 def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model) -> dict:
     from recon.metrics.lpips import lpips
     from recon.workspace.scene import load_images
@@ -119,7 +126,7 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
                 out["acc"].float().cpu().numpy(),
             )
     keys = sorted({k for v in per_view.values() for k in v})
-    mean = {k: float(np.nanmean([v[k] for v in per_view.values() if k in v])) for k in keys}
+    mean = {k: _nanmean([v[k] for v in per_view.values() if k in v]) for k in keys}
     sfm_size = scene.image_size("train")
     return {
         "per_view": per_view,
