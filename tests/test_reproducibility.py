@@ -54,10 +54,8 @@ def _train_and_eval(ws, method: str, run: str) -> dict:
         "3",
         "--threads",
         "2",
-        "--eval-every",
-        "1000",
         "--eval-views",
-        "1",
+        "0",  # compared below through `recon eval`
         *METHODS[method],
         env={"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"},
     )

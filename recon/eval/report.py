@@ -106,7 +106,7 @@ def plot_speed_vs_error(ws: Workspace, runs: list[str]) -> None:
     ax.set_xlabel("training time (s, log scale; evaluation excluded)")
     ax.set_ylabel("held-out PSNR (dB)")
     ax.grid(True, which="both", alpha=0.3)
-    if runs:
+    if ax.get_legend_handles_labels()[0]:  # runs trained without held-out PSNR draw nothing
         ax.legend()
     ax.set_title("speed vs error")
     fig.tight_layout()
