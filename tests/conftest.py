@@ -23,7 +23,8 @@ def recon_cli(
     (the same parsing, stages and exit codes; a fresh interpreter costs ~3 s of imports and numba
     cache loads per call, most of the suite's time); with `env` or `subprocess_=True` it runs
     `python -m recon.cli` in a subprocess, as a user or CI would (environment variables that
-    torch and numba read at start-up, signals, timeouts)."""
+    torch and numba read at start-up, signals, `timeout`, which an in-process call ignores).
+    RECON_TEST_SUBPROCESS=1 in the environment sends every call to a subprocess."""
     if env is None and not subprocess_ and not os.environ.get("RECON_TEST_SUBPROCESS"):
         proc = _recon_in_process(args)
     else:
