@@ -99,7 +99,8 @@ POSE_PROBATION_PASSES = 5
 @dataclass(frozen=True)
 class GaussiansConfig:
     """3D Gaussian splatting. Defaults are the reference's (the "paper" preset); "fast" rescales
-    the schedules to a CPU run of a few thousand steps."""
+    the schedules to a CPU run of a few thousand steps and doubles the rates of the means,
+    scales and colours."""
 
     init: str = opt("sfm", "sfm (SceneInfo.points; random if there are none) | random")
     init_points: int = opt(100_000, "random initial Gaussians in the scene box")
@@ -236,6 +237,16 @@ PRESETS = {
         # against 0.1053, 32.33 against 32.52 dB; 2 min 27.42 against 27.09 dB) and lego-200
         # 57 k (33.43 against 33.22 dB, LPIPS 0.0108 against 0.0118)
         "densify_grad_threshold": 0.00015,
+        # twice the reference's rates for the means, scales and colours (opacity and rotations
+        # unchanged): they are tuned for 30 k steps and a CPU run makes 1.5-8 k. Measured in
+        # pairs, same seed (bench/results/3dgs_lr_scale.md): fox-real 10 min +0.12 dB,
+        # 30 min +0.56 dB (2.8 k steps) and +0.06 dB (4.8 k steps), LPIPS lower in all three;
+        # lego-200 10 min +0.89 dB (34.00, LPIPS 0.0089 against 0.0118); x4 lost 0.22 dB on fox
+        "lr_means": 0.00032,
+        "lr_means_final": 0.0000032,
+        "lr_scales": 0.01,
+        "lr_sh_dc": 0.005,
+        "lr_sh_rest": 0.00025,
         # no coarse-to-fine: at equal wall time on fox it saved 34 s over the first 500 steps
         # and lost them again to larger Gaussians (same steps, 32.48 vs 32.52 dB without;
         # bench/results/3dgs_c2f_ab.md)
