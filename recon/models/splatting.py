@@ -239,9 +239,10 @@ PRESETS = {
         "densify_grad_threshold": 0.00015,
         # twice the reference's rates for the means, scales and colours (opacity and rotations
         # unchanged): they are tuned for 30 k steps and a CPU run makes 1.5-8 k. Measured in
-        # pairs, same seed (bench/results/3dgs_lr_scale.md): fox-real 10 min +0.12 dB,
-        # 30 min +0.56 dB (2.8 k steps) and +0.06 dB (4.8 k steps), LPIPS lower in all three;
-        # lego-200 10 min +0.89 dB (34.00, LPIPS 0.0089 against 0.0118); x4 lost 0.22 dB on fox
+        # pairs, same seed (bench/results/3dgs_lr_scale.md): fox-real 2 min +0.13 dB, 10 min
+        # +0.12 and -0.04 dB, 30 min +0.56 (2.8 k steps) and +0.06 dB (4.8 k steps), LPIPS lower
+        # in all five; lego-200 10 min +0.89 dB (34.00, LPIPS 0.0089 against 0.0118); x4 lost
+        # 0.22 dB on fox at 10 min
         "lr_means": 0.00032,
         "lr_means_final": 0.0000032,
         "lr_scales": 0.01,
