@@ -301,7 +301,7 @@ def pose_probation_end(config: GaussiansConfig, num_cameras: int) -> int:
     """The first step after the pose probation: pose_refine_start + pose_probation steps
     (-1: POSE_PROBATION_PASSES passes over the num_cameras training views); with
     pose_release_ratio 0 there is none (pose_refine_start). Example: 35 cameras, the
-    defaults -> 175."""
+    defaults -> 140."""
     if config.pose_release_ratio <= 0:
         return config.pose_refine_start
     steps = (
