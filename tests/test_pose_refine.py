@@ -169,6 +169,7 @@ def test_release_frees_the_outliers_and_holds_the_rest():
 def test_probation_end():
     assert pose_probation_end(config(pose_refine=True), 35) == 140
     assert pose_probation_end(config(pose_refine=True, pose_refine_start=10), 35) == 150
+    assert pose_probation_end(GaussiansConfig(pose_refine=True), 35) == 175  # paper: 5 passes
     assert pose_probation_end(config(pose_refine=True, pose_probation=40), 35) == 40
     assert pose_probation_end(config(pose_refine=True, pose_release_ratio=0.0), 35) == 0
 
