@@ -118,6 +118,10 @@ class GaussiansConfig:
     lr_opacity: float = opt(0.05, "lr of the opacity logits")
     lr_scales: float = opt(0.005, "lr of the log-scales")
     lr_quats: float = opt(0.001, "lr of the quaternions")
+    lr_anneal: float = opt(
+        1.0,
+        "the rates of the scales, rotations, opacities and colours at lr_decay_steps, as a fraction of their own (log-linear decay over its second half; 1 = constant, as the reference)",
+    )
     densify_grad_threshold: float = opt(
         _DENSIFY.grad_threshold, "mean NDC 2D-mean gradient that triggers densify"
     )
@@ -292,6 +296,28 @@ def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
     )
 
 
+SCENE_RATES = {  # parameter group -> its config rate; the means have their own decay (means_lr)
+    "quats": "lr_quats",
+    "log_scales": "lr_scales",
+    "opacity_logits": "lr_opacity",
+    "sh_dc": "lr_sh_dc",
+    "sh_rest": "lr_sh_rest",
+}
+
+
+def scene_lrs(config: GaussiansConfig, step: int) -> dict[str, float]:
+    """The rates of the non-position parameter groups at `step`: their config values until
+    lr_decay_steps / 2, then a log-linear decay to lr_anneal times those at lr_decay_steps.
+    Example: lr_opacity 0.05, lr_anneal 0.1, lr_decay_steps 1,000 -> 0.05 at step 500, 0.0158
+    at step 750, 0.005 from step 1,000 on."""
+    begin = config.lr_decay_steps // 2
+    rates = {}
+    for group, field in SCENE_RATES.items():
+        lr = getattr(config, field)
+        rates[group] = exp_decay_lr(step, lr, lr * config.lr_anneal, config.lr_decay_steps, begin)
+    return rates
+
+
 def pose_lr(config: GaussiansConfig, step: int) -> float:
     """lr_pose over the first half of [pose_refine_start, lr_decay_steps], then a log-linear
     decay to lr_pose_final at its end: a camera is visited once per pass over the training
@@ -430,6 +456,8 @@ class GaussianModel(Model):
                 "pose_refine needs lr_pose > 0, lr_pose_final > 0, pose_refine_start >= 0 "
                 "and pose_release_ratio >= 0"
             )
+        if not config.lr_anneal > 0:
+            raise ValueError(f"lr_anneal must be > 0, got {config.lr_anneal}")
         if not (0.0 <= config.prune_contribution < 1.0 or config.prune_contribution == -1.0):
             raise ValueError(
                 f"prune_contribution must be in [0, 1) or -1 (auto), got {config.prune_contribution}"
@@ -656,6 +684,9 @@ class GaussianModel(Model):
         scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
         self.active_sh_degree.fill_(max(scheduled, self._min_sh_degree))
         set_lr(self.optimizer, means_lr(c, step, extent), "means")
+        if c.lr_anneal != 1.0:
+            for group, lr in scene_lrs(c, step).items():
+                set_lr(self.optimizer, lr, group)
         return extent
 
     @torch.no_grad()
