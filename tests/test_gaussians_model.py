@@ -209,28 +209,36 @@ def test_fit_schedules_worked_example():
 
 
 def test_scene_lrs_anneal_in_the_second_half_of_the_decay():
-    """scene_lrs' worked example (lr_opacity 0.05, lr_anneal 0.1 over 1,000 steps: 0.05 at 500,
+    """scene_lrs' worked example (lr_opacity 0.05, anneal 0.1 over 1,000 steps: 0.05 at 500,
     0.05 * 0.1^0.5 = 0.0158 at 750, 0.005 from 1,000 on), every group alike; lr_anneal 1 keeps
-    the reference's constant rates; a training step sets them in the optimizer."""
-    from recon.models.splatting import SCENE_RATES, scene_lrs
+    the reference's constant rates and auto (-1) anneals unbounded captures only; a training
+    step sets the rates in the optimizer."""
+    from recon.models.splatting import SCENE_RATES, anneal_factor, scene_lrs
 
-    c = GaussiansConfig(lr_opacity=0.05, lr_anneal=0.1, lr_decay_steps=1000)
-    assert scene_lrs(c, 0)["opacity_logits"] == scene_lrs(c, 500)["opacity_logits"] == 0.05
-    assert scene_lrs(c, 750)["opacity_logits"] == pytest.approx(0.0158114, rel=1e-5)
-    assert scene_lrs(c, 1000)["opacity_logits"] == pytest.approx(0.005)
-    assert scene_lrs(c, 4000)["opacity_logits"] == pytest.approx(0.005)
+    c = GaussiansConfig(lr_opacity=0.05, lr_decay_steps=1000)
+    assert scene_lrs(c, 0, 0.1)["opacity_logits"] == scene_lrs(c, 500, 0.1)["opacity_logits"]
+    assert scene_lrs(c, 500, 0.1)["opacity_logits"] == 0.05
+    assert scene_lrs(c, 750, 0.1)["opacity_logits"] == pytest.approx(0.0158114, rel=1e-5)
+    assert scene_lrs(c, 1000, 0.1)["opacity_logits"] == pytest.approx(0.005)
+    assert scene_lrs(c, 4000, 0.1)["opacity_logits"] == pytest.approx(0.005)
     for group, field in SCENE_RATES.items():
-        assert scene_lrs(c, 1000)[group] == pytest.approx(0.1 * getattr(c, field))
-        assert scene_lrs(GaussiansConfig(), 10**6)[group] == getattr(GaussiansConfig(), field)
+        assert scene_lrs(c, 1000, 0.1)[group] == pytest.approx(0.1 * getattr(c, field))
+        assert scene_lrs(c, 10**6, 1.0)[group] == getattr(c, field)
+    fast = GaussiansConfig(**PRESETS["fast"])
+    assert (anneal_factor(fast, True), anneal_factor(fast, False)) == (0.1, 1.0)
+    assert anneal_factor(GaussiansConfig(), True) == 1.0  # the paper preset: constant rates
+    assert anneal_factor(GaussiansConfig(lr_anneal=0.3), False) == 0.3
     with pytest.raises(ValueError, match="lr_anneal"):
         GaussianModel(config(lr_anneal=0.0), synthetic_scene()[0])
 
-    scene, data = synthetic_scene()
+    scene, data = synthetic_scene()  # bounded: auto keeps the rates constant
+    model = GaussianModel(config(lr_decay_steps=10), scene)
+    assert model.anneal == 1.0
     model = GaussianModel(config(lr_anneal=0.1, lr_decay_steps=10), scene)
     for step in range(8):
         model.train_step(data, step)
     lrs = {g["name"]: g["lr"] for g in model.optimizer.param_groups}
-    for group, lr in scene_lrs(model.config, 7).items():
+    for group, lr in scene_lrs(model.config, 7, 0.1).items():
         assert lrs[group] == pytest.approx(lr) and lr < getattr(model.config, SCENE_RATES[group])
 
 

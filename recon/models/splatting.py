@@ -90,8 +90,9 @@ _DENSIFY = densify.DensifyStrategy  # the densification defaults have one source
 @dataclass(frozen=True)
 class GaussiansConfig:
     """3D Gaussian splatting. Defaults are the reference's (the "paper" preset); "fast" rescales
-    the schedules to a CPU run of a few thousand steps and doubles the rates of the means,
-    scales and colours."""
+    the schedules to a CPU run of a few thousand steps, doubles the rates of the means,
+    scales and colours and, on real captures, anneals all but the means' over the run's
+    second half."""
 
     init: str = opt("sfm", "sfm (SceneInfo.points; random if there are none) | random")
     init_points: int = opt(100_000, "random initial Gaussians in the scene box")
@@ -120,7 +121,7 @@ class GaussiansConfig:
     lr_quats: float = opt(0.001, "lr of the quaternions")
     lr_anneal: float = opt(
         1.0,
-        "the rates of the scales, rotations, opacities and colours at lr_decay_steps, as a fraction of their own (log-linear decay over its second half; 1 = constant, as the reference)",
+        "the rates of the scales, rotations, opacities and colours at lr_decay_steps, as a fraction of their own (log-linear decay over its second half; 1 = constant, as the reference; -1 = auto: 0.1 on unbounded captures, 1 on bounded scenes)",
     )
     densify_grad_threshold: float = opt(
         _DENSIFY.grad_threshold, "mean NDC 2D-mean gradient that triggers densify"
@@ -256,12 +257,11 @@ PRESETS = {
         "lr_scales": 0.01,
         "lr_sh_dc": 0.005,
         "lr_sh_rest": 0.00025,
-        # and all but the means' (which decay 100x over the run) anneal to a tenth over the
-        # run's second half, in place of the reference's constant rates: one image a step at
-        # these rates leaves the opacities and scales jittering. Measured, same seed
-        # (bench/results/3dgs_lr_anneal.md): fox-real 10 min 32.70 against 32.31 dB, 30 min
-        # 33.51 against 33.04 dB
-        "lr_anneal": 0.1,
+        # and on real captures all but the means' (which decay 100x over the run) anneal to a
+        # tenth over the run's second half, in place of the reference's constant rates: one
+        # image a step at these rates leaves the opacities and scales jittering (fox-real +0.39
+        # and +0.47 dB at 10 and 30 min; lego-200 -0.39 dB, so auto; see anneal_factor)
+        "lr_anneal": -1.0,
         # at these rates the scene fits a wrong camera pose sooner: a shorter pose probation
         # (bench/results/3dgs_pose_refine.md; see pose_probation_passes above)
         "pose_probation_passes": 4,
@@ -311,16 +311,27 @@ SCENE_RATES = {  # parameter group -> its config rate; the means have their own 
 }
 
 
-def scene_lrs(config: GaussiansConfig, step: int) -> dict[str, float]:
+def anneal_factor(config: GaussiansConfig, unbounded: bool) -> float:
+    """lr_anneal, or with -1 (auto) 0.1 on unbounded captures and 1 (constant rates) on bounded
+    scenes. Measured (bench/results/3dgs_lr_anneal.md), 0.1 against 1: fox-real 10 min 32.70
+    against 32.31 dB, 30 min 33.51 against 33.04; lego-200 10 min 33.61 against 34.00."""
+    if config.lr_anneal == -1.0:
+        return 0.1 if unbounded else 1.0
+    if not config.lr_anneal > 0:
+        raise ValueError(f"lr_anneal must be > 0 or -1 (auto), got {config.lr_anneal}")
+    return config.lr_anneal
+
+
+def scene_lrs(config: GaussiansConfig, step: int, anneal: float) -> dict[str, float]:
     """The rates of the non-position parameter groups at `step`: their config values until
-    lr_decay_steps / 2, then a log-linear decay to lr_anneal times those at lr_decay_steps.
-    Example: lr_opacity 0.05, lr_anneal 0.1, lr_decay_steps 1,000 -> 0.05 at step 500, 0.0158
+    lr_decay_steps / 2, then a log-linear decay to `anneal` times those at lr_decay_steps.
+    Example: lr_opacity 0.05, anneal 0.1, lr_decay_steps 1,000 -> 0.05 at step 500, 0.0158
     at step 750, 0.005 from step 1,000 on."""
     begin = config.lr_decay_steps // 2
     rates = {}
     for group, field in SCENE_RATES.items():
         lr = getattr(config, field)
-        rates[group] = exp_decay_lr(step, lr, lr * config.lr_anneal, config.lr_decay_steps, begin)
+        rates[group] = exp_decay_lr(step, lr, lr * anneal, config.lr_decay_steps, begin)
     return rates
 
 
@@ -462,8 +473,7 @@ class GaussianModel(Model):
                 "pose_refine needs lr_pose > 0, lr_pose_final > 0, pose_refine_start >= 0 "
                 "and pose_release_ratio >= 0"
             )
-        if not config.lr_anneal > 0:
-            raise ValueError(f"lr_anneal must be > 0, got {config.lr_anneal}")
+        self.anneal = anneal_factor(config, bool(scene.unbounded))
         if not (0.0 <= config.prune_contribution < 1.0 or config.prune_contribution == -1.0):
             raise ValueError(
                 f"prune_contribution must be in [0, 1) or -1 (auto), got {config.prune_contribution}"
@@ -690,8 +700,8 @@ class GaussianModel(Model):
         scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
         self.active_sh_degree.fill_(max(scheduled, self._min_sh_degree))
         set_lr(self.optimizer, means_lr(c, step, extent), "means")
-        if c.lr_anneal != 1.0:
-            for group, lr in scene_lrs(c, step).items():
+        if self.anneal != 1.0:
+            for group, lr in scene_lrs(c, step, self.anneal).items():
                 set_lr(self.optimizer, lr, group)
         return extent
 
