@@ -16,8 +16,7 @@ import torch
 from torch import Tensor
 
 from recon.cameras import Cameras
-from recon.gaussians.rasterize import rasterize_features
-from recon.gaussians.render import project_splats
+from recon.gaussians.render import project_splats, rasterize_splats
 
 
 def view_contributions(
@@ -31,11 +30,9 @@ def view_contributions(
     detached = {k: v.detach() for k, v in gaussians.items()}
     with torch.no_grad():
         s = project_splats(detached, camera, sh_degree, near, antialiased)
-    ones = torch.ones(len(s.opacities), 1, dtype=s.colors.dtype, requires_grad=True)
+    ones = s.colors.new_ones(len(s.opacities), 1).requires_grad_()
     with torch.enable_grad():
-        image, _ = rasterize_features(
-            s.means2d, s.conics, s.opacities, ones, s.radii, s.depths, s.width, s.height
-        )
+        image, _ = rasterize_splats(s, ones)
         (weights,) = torch.autograd.grad(image.sum(), ones)
     return weights[:, 0]
 
@@ -47,18 +44,19 @@ def contributions(
     near: float,
     antialiased: bool = False,
 ) -> Tensor:
-    """C_i summed over the views `cameras`: (G,), float64."""
-    total = torch.zeros(len(gaussians["means"]), dtype=torch.float64)
+    """C_i summed over the views `cameras`: (G,), float64, on the Gaussians' device."""
+    means = gaussians["means"]
+    total = torch.zeros(len(means), dtype=torch.float64, device=means.device)
     for view in range(len(cameras)):
         weights = view_contributions(gaussians, cameras[view], sh_degree, near, antialiased)
-        total += weights.double().cpu()
+        total += weights.double()
     return total
 
 
 def least_contributing(scores: Tensor, fraction: float) -> Tensor:
     """Mask (G,) of the floor(fraction G) lowest scores (ties broken by index).
     Example: scores (3, 1, 2, 0), fraction 0.5 -> (False, True, False, True)."""
-    drop = torch.zeros(len(scores), dtype=torch.bool)
+    drop = torch.zeros(len(scores), dtype=torch.bool, device=scores.device)
     count = int(fraction * len(scores))
     drop[torch.argsort(scores, stable=True)[:count]] = True
     return drop

@@ -67,11 +67,32 @@ def rasterize_features_torch(
     """Same arguments and outputs as `rasterize.rasterize_features`: image (H, W, D),
     transmittance (H, W)."""
     tile = tile_size(width, height)
-    tiles_x, tiles_y = tile_grid(width, height, tile)
-    n_tiles, D = tiles_x * tiles_y, features.shape[1]
     bounds = tile_bounds(means2d, radii, width, height, tile, conics, opacities)
     starts, gid = bin_gaussians_sorted(bounds, depths, width, height, tile)
-    tile_ids = torch.repeat_interleave(torch.arange(n_tiles, device=gid.device), starts.diff())
+    return composite_tile_lists(
+        means2d, conics, opacities, features, starts, gid, width, height, tile, abs_grad
+    )
+
+
+def composite_tile_lists(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    tile_start: Tensor,
+    gauss_ids: Tensor,
+    width: int,
+    height: int,
+    tile: int,
+    abs_grad: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Composite given per-tile lists: splats gauss_ids[tile_start[t]:tile_start[t + 1]] (depth
+    order) at the pixels of tile t (row-major tiles of `tile` px) -> image (H, W, D),
+    transmittance (H, W)."""
+    tiles_x, tiles_y = tile_grid(width, height, tile)
+    n_tiles, D = tiles_x * tiles_y, features.shape[1]
+    gid = gauss_ids
+    tile_ids = torch.repeat_interleave(torch.arange(n_tiles, device=gid.device), tile_start.diff())
     px, py, on_image = _pixel_grid(tile_ids, width, height, tile, means2d.dtype)
     alpha = _alphas(means2d, conics, opacities, gid, px, py, on_image, abs_grad)
     # each of a tile's pixels composites the tile's depth-sorted list: packed along dim 0

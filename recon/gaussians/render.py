@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from recon.cameras import Cameras
+from recon.gaussians import gsplat_glue
 from recon.gaussians.project_fused import project_fused
 from recon.gaussians.projection import antialias_compensation, project_gaussians, sh_colors
 from recon.gaussians.rasterize import rasterize_features
@@ -23,7 +24,9 @@ from recon.gaussians.rasterize import rasterize_features
 @dataclass
 class ProjectedSplats:
     """Gaussians in one camera. means2d (G, 2) px, conics (G, 3), depths (G,) camera z,
-    radii (G,) (0 = culled), opacities (G,) in [0, 1], colors (G, 3); width, height in px."""
+    radii (G,) (0 = culled), opacities (G,) in [0, 1], colors (G, 3); width, height in px.
+    Projected by gsplat (CUDA), they also carry its per-axis radii (G, 2), which its
+    rasterizer bins by (`gsplat_glue`)."""
 
     means2d: Tensor
     conics: Tensor
@@ -33,6 +36,7 @@ class ProjectedSplats:
     colors: Tensor
     width: int
     height: int
+    radii_xy: Tensor | None = None
 
 
 def splat_opacities(opacity_logits: Tensor, conics: Tensor, antialiased: bool) -> Tensor:
@@ -50,8 +54,10 @@ def project_splats(
 ) -> ProjectedSplats:
     """Project G Gaussians into the single camera `camera` (len 1), colours from SH of
     `sh_degree` seen from its centre, opacity = sigmoid(logit) (`splat_opacities`). CPU
-    tensors take the fused numba pass (`project_fused`), other devices its pure-torch twin
-    (`project_splats_torch`)."""
+    tensors take the fused numba pass (`project_fused`), CUDA tensors gsplat's projection
+    (`gsplat_glue`), other devices the pure-torch twin (`project_splats_torch`)."""
+    if gsplat_glue.uses_gsplat(gaussians["means"]):
+        return project_splats_gsplat(gaussians, camera, sh_degree, near, antialiased)
     if gaussians["means"].device.type != "cpu":
         return project_splats_torch(gaussians, camera, sh_degree, near, antialiased)
     g, dtype = gaussians, gaussians["means"].dtype
@@ -90,6 +96,41 @@ def mean_compensation(gaussians: Mapping[str, Tensor], cameras: Cameras, near: f
     return torch.where(seen > 0, total / seen.clamp_min(1), 1.0)
 
 
+def _colors(gaussians: Mapping[str, Tensor], camera: Cameras, sh_degree: int) -> Tensor:
+    """(G, 3) SH colours of degree `sh_degree` seen from the camera's centre (torch)."""
+    sh = gaussians["sh_dc"]
+    if sh_degree > 0:
+        sh = torch.cat([sh, gaussians["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
+    center = camera.centers[0].to(gaussians["means"].dtype)
+    return sh_colors(gaussians["means"], sh, sh_degree, center)
+
+
+def project_splats_gsplat(
+    gaussians: Mapping[str, Tensor],
+    camera: Cameras,
+    sh_degree: int,
+    near: float = 0.01,
+    antialiased: bool = False,
+) -> ProjectedSplats:
+    """`project_splats` by gsplat's fused projection (CUDA), colours by `sh_colors`."""
+    g, dtype = gaussians, gaussians["means"].dtype
+    W, H = int(camera.width[0]), int(camera.height[0])
+    means2d, conics, depths, radii_xy = gsplat_glue.project(
+        g["means"],
+        g["quats"],
+        g["log_scales"],
+        camera.K[0].to(dtype),
+        camera.cam_from_world[0].to(dtype),
+        W,
+        H,
+        near,
+    )
+    radii = radii_xy.amax(-1).to(dtype)
+    opacities = splat_opacities(g["opacity_logits"], conics, antialiased)
+    colors = _colors(g, camera, sh_degree)
+    return ProjectedSplats(means2d, conics, depths, radii, opacities, colors, W, H, radii_xy)
+
+
 def project_splats_torch(
     gaussians: Mapping[str, Tensor],
     camera: Cameras,
@@ -111,13 +152,33 @@ def project_splats_torch(
         H,
         near,
     )
-    sh = gaussians["sh_dc"]
-    if sh_degree > 0:
-        sh = torch.cat([sh, gaussians["sh_rest"][:, : (sh_degree + 1) ** 2 - 1]], 1)
-    center = camera.centers[0].to(dtype)
-    colors = sh_colors(gaussians["means"], sh, sh_degree, center)
+    colors = _colors(gaussians, camera, sh_degree)
     opacities = splat_opacities(gaussians["opacity_logits"], conics, antialiased)
     return ProjectedSplats(means2d, conics, depths, radii, opacities, colors, W, H)
+
+
+def rasterize_splats(
+    splats: ProjectedSplats, features: Tensor, abs_grad: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """F(p) = sum_i T_i alpha_i f_i (H, W, D) and T_final (H, W) of the projected splats with
+    per-splat `features` (G, D), differentiable: gsplat's rasterizer for splats it projected,
+    else `rasterize_features` (numba on the CPU). `abs_grad` (G, 2): see `rasterize_features`."""
+    s = splats
+    if s.radii_xy is not None:
+        return gsplat_glue.rasterize(
+            s.means2d,
+            s.conics,
+            s.opacities,
+            features,
+            s.radii_xy,
+            s.depths,
+            s.width,
+            s.height,
+            abs_grad,
+        )
+    return rasterize_features(
+        s.means2d, s.conics, s.opacities, features, s.radii, s.depths, s.width, s.height, abs_grad
+    )
 
 
 def composite_rgb(
@@ -125,10 +186,7 @@ def composite_rgb(
 ) -> tuple[Tensor, Tensor]:
     """rgb = sum_i T_i alpha_i c_i + T_final bg -> rgb (H, W, 3), acc = 1 - T_final (H, W).
     `abs_grad` (G, 2): see `rasterize_features`."""
-    s = splats
-    image, T = rasterize_features(
-        s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths, s.width, s.height, abs_grad
-    )
+    image, T = rasterize_splats(splats, splats.colors, abs_grad)
     return image + T[..., None] * background.to(image), 1 - T
 
 
@@ -137,8 +195,6 @@ def composite_rgbd(splats: ProjectedSplats, background: Tensor) -> dict[str, Ten
     a surface depth), acc (H, W); w_i = T_i alpha_i. Depth rides along as a 4th channel."""
     s = splats
     features = torch.cat([s.colors, s.depths[:, None]], -1)
-    image, T = rasterize_features(
-        s.means2d, s.conics, s.opacities, features, s.radii, s.depths, s.width, s.height
-    )
+    image, T = rasterize_splats(s, features)
     rgb = image[..., :3] + T[..., None] * background.to(image)
     return {"rgb": rgb, "depth": image[..., 3], "acc": 1 - T}
