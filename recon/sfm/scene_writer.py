@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from recon.io.colmap_binary import write_colmap_binary
 from recon.io.images import composite, read_image, resize_area, write_png
 from recon.io.ply import write_points_ply
 from recon.options import opt
@@ -184,30 +185,12 @@ def write_scene(
 
 def write_colmap_model(out: Path, records, Ks, world_from_cam, posed: PosedImages) -> None:
     """PINHOLE COLMAP binary model in the ORIGINAL world frame (one camera per distinct K/size)."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction()
     cam_ids: dict[tuple, int] = {}
+    cameras, images = [], []
     for i, ((frame, rel, w, h), K) in enumerate(zip(records, Ks)):
         key = (w, h) + tuple(np.round(K[[0, 1, 0, 1], [0, 1, 2, 2]], 6))
         if key not in cam_ids:
             cam_ids[key] = len(cam_ids) + 1
-            cam = pycolmap.Camera.create_from_model_name(
-                cam_ids[key], "PINHOLE", 1.0, int(w), int(h)
-            )
-            cam.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-            rec.add_camera_with_trivial_rig(cam)
-        cam_from_world = np.linalg.inv(world_from_cam[i])
-        pose = pycolmap.Rigid3d(cam_from_world[:3, :])
-        image = pycolmap.Image(name=rel, camera_id=cam_ids[key], image_id=i + 1)
-        rec.add_image_with_trivial_frame(image, pose)
-    if posed.points is not None:
-        colors = (
-            posed.point_colors
-            if posed.point_colors is not None
-            else np.full((len(posed.points), 3), 128)
-        )
-        for p, c in zip(posed.points, colors):
-            rec.add_point3D(np.asarray(p, float), pycolmap.Track(), np.asarray(c, np.uint8))
-    out.mkdir(parents=True, exist_ok=True)
-    rec.write(str(out))
+            cameras.append((cam_ids[key], int(w), int(h), K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        images.append((i + 1, rel, cam_ids[key], np.linalg.inv(world_from_cam[i])))
+    write_colmap_binary(out, cameras, images, posed.points, posed.point_colors)
