@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: install test lint demo bench sweep browser clean
+.PHONY: install test lint demo bench sweep browser clean gpu-wheels gpu-check
 
 install: $(BIN)/recon
 
@@ -56,5 +56,28 @@ bench: install
 	$(BIN)/python pipelines/bench_mesh.py --methods ngp,plenoxel,3dgs,sdf,mvs
 	$(BIN)/python pipelines/bench_mesh.py --scenes sample --methods sdf,3dgs --curve 60,120,300,600
 
+# Wheels for a GPU machine without network (`make gpu-check` installs from them only what that
+# machine lacks, never its torch): recon's dependencies with theirs, for GPU_PY on x86-64 Linux,
+# and gsplat and pytorch-msssim without theirs (torch), into .gpu-wheels/
+GPU_PY ?= 3.12
+GPU_WHEELS ?= .gpu-wheels
+GPU_PLATFORMS := $(foreach p,manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 manylinux2014_x86_64 manylinux1_x86_64,--platform $(p))
+GPU_DOWNLOAD = $(PY) -m pip download -q --only-binary=:all: --python-version $(GPU_PY) \
+	--implementation cp $(GPU_PLATFORMS) -d $(GPU_WHEELS)
+gpu-wheels: install
+	mkdir -p $(GPU_WHEELS)
+	$(GPU_DOWNLOAD) numpy click rich 'pycolmap>=3.12,<5' 'opencv-contrib-python-headless>=4.8,<5' \
+		OpenEXR trimesh scipy scikit-image matplotlib numba imageio imageio-ffmpeg pillow jaxtyping
+	$(GPU_DOWNLOAD) --no-deps gsplat==1.5.3 pytorch-msssim
+	# LPIPS's weights, converted here (recon fetches them with pip, which needs a network)
+	$(BIN)/python -c "from recon.metrics.lpips import ensure_lpips_weights as w; import shutil; shutil.copy(w(), '$(GPU_WHEELS)')"
+	@ls $(GPU_WHEELS) | wc -l | xargs echo "wheels in $(GPU_WHEELS):"
+
+# On a machine with an NVIDIA GPU, nvcc and a CUDA build of torch (python3 there): installs what
+# is missing from .gpu-wheels/, compiles gsplat, trains every method on lego-400 and 3dgs on fox,
+# writes bench/results/<date>-gpu-check-<gpu>.json (pipelines/gpu_check.py)
+gpu-check:
+	python3 pipelines/gpu_check.py --wheels $(GPU_WHEELS)
+
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache .gpu-site
