@@ -202,7 +202,7 @@ def train_and_eval(
     recon(
         "train", "-w", str(ws), "--method", method, "--run", run, "--device", device,
         "--time-budget", f"{budget:g}", "--eval-every", f"{EVAL_EVERY_S:g}",
-        "--eval-views", "25", "--eval-max-side", str(eval_max_side),
+        "--eval-views", "25", "--eval-max-side", str(eval_max_side), "--threads", "2",
     )  # fmt: skip
     train_s = time.perf_counter() - t0
     ev = recon("eval", "-w", str(ws), "--run", run, "--downscale", str(downscale))
@@ -225,6 +225,20 @@ def train_and_eval(
         "eval": metrics,
         "gaussians": doc.get("model_stats", {}).get("gaussians"),
     }
+
+
+def cuda_tests() -> dict:
+    """tests/test_cuda.py (every method trains, renders and resumes on CUDA), its last lines."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_cuda.py"],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=child_env(),
+        cwd=ROOT,
+    )
+    lines = proc.stdout.strip().splitlines()
+    return {"exit": proc.returncode, "summary": lines[-1] if lines else "", "tail": lines[-40:]}
 
 
 def device_info() -> dict:
@@ -273,6 +287,9 @@ def main() -> int:
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--serial", action="store_true", help="one run at a time (exclusive timings)")
     ap.add_argument(
+        "--tests", action="store_true", help="also run tests/test_cuda.py (beside the 3dgs runs)"
+    )
+    ap.add_argument(
         "--device", default="cuda", choices=("cuda", "cpu"), help="cpu: a rehearsal without gsplat"
     )
     args = ap.parse_args()
@@ -297,33 +314,46 @@ def main() -> int:
     result = {"device": info, "packages": packages, "runs": [], "errors": []}
     lock = threading.Lock()
 
+    stamp = time.strftime("%Y-%m-%d")
+    out = (
+        args.out
+        or ROOT / "bench" / "results" / f"{stamp}-gpu-check-{info['gpu'].replace(' ', '_')}.json"
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save() -> None:  # after every run: a check cut short still leaves what it measured
+        with lock:
+            result["total_s"] = round(time.perf_counter() - t_start, 1)
+            out.write_text(json.dumps(result, indent=1) + "\n")
+
     def record(job, *a):
         try:
-            out = job(*a)
+            done = job(*a)
         except Exception as e:  # noqa: BLE001 (a failing run is reported, the others go on)
             with lock:
                 result["errors"].append(f"{job.__name__}{a[1:3]}: {e}"[-3000:])
             log(f"FAILED {job.__name__} {a[1:3]}: {str(e)[-500:]}")
+            save()
             return None
-        if isinstance(out, dict) and "method" in out:
-            with lock:
-                result["runs"].append(out)
-            log(
-                f"{out['scene']} {out['method']}: {out['eval'].get('psnr')} dB, {out['steps']} steps"
-            )
-        return out
+        with lock:
+            result["runs"].append(done)
+        log(
+            f"{done['scene']} {done['method']}: {done['eval'].get('psnr')} dB, {done['steps']} steps"
+        )
+        save()
+        return done
 
+    result["concurrent_runs"] = not args.serial
     with ThreadPoolExecutor(max_workers=1 if args.serial else 8) as pool:
         gsplat = "3dgs" in methods and args.device == "cuda"
         compiling = pool.submit(compile_gsplat, info["capability"]) if gsplat else None
-        lego = WORK / "lego"
-        recon(
-            "sfm",
-            "--from-transforms",
-            str(lego_subset(args.data / "nerf_synthetic_lego_400", WORK / "lego_data")),
-            "-w",
-            str(lego),
-        )
+        lego, fox = WORK / "lego", WORK / "fox"
+        fox_import = None
+        if "3dgs" in methods:
+            fox_src = str(args.data / "fox")
+            fox_import = pool.submit(recon, "sfm", "--from-transforms", fox_src, "-w", str(fox))
+        lego_src = lego_subset(args.data / "nerf_synthetic_lego_400", WORK / "lego_data")
+        recon("sfm", "--from-transforms", str(lego_src), "-w", str(lego))
         log("lego-400 imported")
         dev = args.device
         jobs = [
@@ -331,36 +361,28 @@ def main() -> int:
             for m in methods
             if m != "3dgs"
         ]
-        fox = WORK / "fox"
-        if "3dgs" in methods:
-            recon("sfm", "--from-transforms", str(args.data / "fox"), "-w", str(fox))
+        if compiling is not None:
+            result["gsplat_compile"] = compiling.result()
+            log(f"gsplat compiled: {result['gsplat_compile']}")
+            save()
+        gsplat_ok = compiling is None or result["gsplat_compile"]["ok"]
+        if "3dgs" in methods and gsplat_ok:
+            fox_import.result()
             log("fox imported")
-            if compiling is not None:
-                result["gsplat_compile"] = compiling.result()
-                log(f"gsplat compiled: {result['gsplat_compile']}")
-            if compiling is None or result["gsplat_compile"]["ok"]:
-                for ws, budget, side, k in (
-                    (lego, args.budget, 800, 1),
-                    (fox, args.fox_budget, 480, 4),
-                ):
-                    jobs.append(
-                        pool.submit(record, train_and_eval, ws, "3dgs", budget, side, k, dev)
-                    )
-            else:
-                result["errors"].append(
-                    "gsplat did not compile: " + result["gsplat_compile"]["error"]
-                )
+            for ws, budget, side, k in (
+                (fox, args.fox_budget, 480, 4),
+                (lego, args.budget, 800, 1),
+            ):
+                jobs.append(pool.submit(record, train_and_eval, ws, "3dgs", budget, side, k, dev))
+        elif "3dgs" in methods:
+            result["errors"].append("gsplat did not compile: " + result["gsplat_compile"]["error"])
+        if args.tests and dev == "cuda":
+            result["cuda_tests"] = pool.submit(cuda_tests).result()
+            log(f"tests/test_cuda.py: {result['cuda_tests']['summary']}")
+            save()
         for job in jobs:
             job.result()
-    result["total_s"] = round(time.perf_counter() - t_start, 1)
-    result["concurrent_runs"] = not args.serial
-    stamp = time.strftime("%Y-%m-%d")
-    out = (
-        args.out
-        or ROOT / "bench" / "results" / f"{stamp}-gpu-check-{info['gpu'].replace(' ', '_')}.json"
-    )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
+    save()
     log(f"{result['total_s']} s in all -> {out}")
     return 1 if result["errors"] else 0
 

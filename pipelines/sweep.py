@@ -118,10 +118,12 @@ def training_pixels(
     workspace: str | Path, method: str, budget_s: float, threads: int
 ) -> int | None:
     """Training pixels (views x width x height) at the working resolution `recon train` will
-    choose for this workspace, method and budget (`recon.train.resolution`, the rule itself);
-    None before the workspace's sfm exists."""
+    choose for this workspace, method and budget (`recon.train.resolution`, the rule itself, at
+    the prior speed of `threads`: what a probe within tolerance of it keeps); None before the
+    workspace's sfm exists."""
     from recon.models.registry import method_spec
     from recon.train.resolution import choose_resolution
+    from recon.train.throughput import prior_speed
     from recon.workspace import Workspace
     from recon.workspace.scene import load_scene
 
@@ -132,7 +134,7 @@ def training_pixels(
     width, height = scene.image_size("train")
     n_views = len(scene.split("train"))
     res = choose_resolution(
-        width, height, n_views, method_spec(method).resolution, budget_s, 0, threads
+        width, height, n_views, method_spec(method).resolution, budget_s, 0, prior_speed(threads)
     )
     return n_views * res.width * res.height
 

@@ -208,6 +208,42 @@ def test_fit_schedules_worked_example():
     assert fit(long) == long  # a run longer than the schedules keeps them
 
 
+def test_the_paper_preset_scales_the_reference_schedule_to_the_planned_run():
+    """schedule_fit reference (the paper preset, a CUDA run's default): INRIA's 30,000-step
+    proportions kept in a shorter plan; the fast preset ends each at its tuned share; a plan
+    as long as the reference keeps it; a re-plan refits with the same proportions."""
+    from recon.models.splatting import SCHEDULE_FRACTIONS, schedule_fractions
+
+    paper = GaussiansConfig(**{**PRESETS["paper"], "schedule_steps": 12_000})
+    fractions = schedule_fractions(paper)
+    assert fractions == pytest.approx(
+        {
+            "lr_decay_steps": 1.0,
+            "densify_stop": 0.5,
+            "opacity_reset_interval": 0.1,
+            "sh_degree_interval": 1 / 30,
+            "relocate_stop": 25 / 30,
+        }
+    )
+    assert schedule_fractions(GaussiansConfig(**PRESETS["fast"])) is SCHEDULE_FRACTIONS
+    scene, _ = synthetic_scene()
+    model = GaussianModel(paper, scene)
+    c = model.config
+    assert (
+        c.lr_decay_steps,
+        c.densify_stop,
+        c.opacity_reset_interval,
+        c.sh_degree_interval,
+        c.relocate_stop,
+    ) == (12_000, 6_000, 1_200, 400, 10_000)
+    assert model.strategy.stop == 6_000
+    assert model.replan(6_000, 100) == 6_000 and model.strategy.stop == 3_000
+    full = GaussiansConfig(**{**PRESETS["paper"], "schedule_steps": 30_000})
+    assert GaussianModel(full, scene).config == full
+    with pytest.raises(ValueError, match="schedule_fit"):
+        GaussianModel(GaussiansConfig(schedule_fit="other"), scene)
+
+
 def test_scene_lrs_anneal_in_the_second_half_of_the_decay():
     """scene_lrs' worked example (lr_opacity 0.05, anneal 0.1 over 1,000 steps: 0.05 at 500,
     0.05 * 0.1^0.5 = 0.0158 at 750, 0.005 from 1,000 on), every group alike; lr_anneal 1 keeps

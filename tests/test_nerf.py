@@ -98,7 +98,7 @@ def test_bf16_mlp_renders_like_fp32_and_trains():
     a, b = exact.render(data.cameras[0]), half.render(data.cameras[0])
     assert b["rgb"].dtype == torch.float32 and (a["rgb"] - b["rgb"]).abs().max() < 0.03
     stats = half.train_step(data, 0)
-    assert torch.isfinite(torch.tensor(stats["loss"]))
+    assert torch.isfinite(torch.as_tensor(stats["loss"]))
     grads = [p.grad for p in half.parameters() if p.grad is not None]
     assert grads and all(g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads)
 
@@ -245,7 +245,7 @@ def test_unbounded_scene_and_misses():
         far=6.0,
     )
     model = NeRFModel(SMALL, away)
-    assert torch.isfinite(torch.tensor(model.train_step(data, 0)["loss"]))
+    assert torch.isfinite(torch.as_tensor(model.train_step(data, 0)["loss"]))
     out = model.render(data.cameras[0])
     torch.testing.assert_close(out["rgb"], info.background.expand(12, 12, 3))
 

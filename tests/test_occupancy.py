@@ -236,6 +236,34 @@ def test_march_dispatch_equals_sample_and_spans_hold_every_occupied_sample():
     assert missed.any() and (lo[missed] == 0).all() and (hi[missed] == 0).all()
 
 
+@pytest.mark.parametrize(
+    "unbounded,cone,cap", [(False, 0.0, 0), (False, 0.0, 5), (True, 1 / 64, 7)]
+)
+def test_torch_march_in_rounds_gives_the_samples_of_one_march(unbounded, cone, cap):
+    """`march_torch` in many rounds of a few intervals a ray (a tiny per-round budget) against
+    its literal definition: every interval at once, the occupied midpoints, the first cap."""
+    grid, step = trained_grid(sphere_density)
+    o, d = rays(n=200)
+    if unbounded:
+        t_min, t_max = torch.full((200,), 0.1), torch.full((200,), 30.0)
+    else:
+        t_min, t_max, _ = ray_aabb_intersect(o, d, AABB)
+    u = torch.rand(200, generator=torch.Generator().manual_seed(3))
+    to_unit = lambda p: scene_to_unit_cube(p, AABB, unbounded)
+    ri, s, e = march_intervals(t_min, t_max, step, cone, u)
+    keep = grid.is_occupied(to_unit(o[ri] + (0.5 * (s + e))[:, None] * d[ri]))
+    ri, s, e = ri[keep], s[keep], e[keep]
+    keep = first_per_ray(ri, cap)
+    ref = ri[keep], s[keep], e[keep]
+    assert ref[0].numel() > 300
+    for budget in (1 << 22, 37, 1):  # one round; many; one interval a ray a round
+        got = grid.march_torch(
+            o, d, t_min, t_max, to_unit, step, cone, u, cap, round_intervals=budget
+        )
+        for a, b in zip(got, ref):
+            assert torch.equal(a, b), budget
+
+
 def test_first_per_ray_worked_example():
     ri = torch.tensor([0, 0, 0, 2, 2, 3])
     assert first_per_ray(ri, 2).tolist() == [True, True, False, True, True, True]

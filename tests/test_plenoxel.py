@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from recon.cameras import camera_rays
-from recon.fields.voxels import SparseVoxelGrid, trilinear_corners
+from recon.fields.voxel_kernels import corners
+from recon.fields.voxels import SparseVoxelGrid, linked_corners_torch, trilinear_corners
 from recon.models.plenoxel import PlenoxelConfig, PlenoxelModel
 from recon.models.raymarch import render_image
 from recon.volrend import ray_aabb_intersect
@@ -109,6 +110,38 @@ def test_vertex_weights_are_blend_weights_times_trilinear_shares():
     assert best.shape == (model.grid.num_rows,) and (best >= 0).all()
     assert float(best.max()) <= float(out["weights"].detach().max()) + 1e-6
     assert float(best.max()) > 0.05  # the sphere's surface is seen
+
+
+def test_linked_corners_torch_twin_matches_the_numba_kernel():
+    """`voxels.linked_corners_torch` (the path off the CPU) against `voxel_kernels.corners`:
+    the same rows (pruned vertices -1) and weights, at points inside, on faces and corners, and
+    outside the cube (clamped)."""
+    g = torch.Generator().manual_seed(0)
+    grid = SparseVoxelGrid(9, {"density": 1}, {"density": 0.0})
+    grid.prune(torch.rand(9**3, generator=g) > 0.3)
+    for dtype in (torch.float32, torch.float64):
+        x = torch.rand(400, 3, generator=g, dtype=dtype) * 1.2 - 0.1
+        x[:8] = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        x[8] = 0.5
+        rows, w = corners(x, grid.res, grid.links)
+        rows_t, w_t = linked_corners_torch(x, grid.res, grid.links)
+        assert (rows == -1).any() and torch.equal(rows, rows_t)
+        torch.testing.assert_close(w, w_t, rtol=0, atol=1e-6 if dtype == torch.float32 else 0)
+
+
+def test_vertex_weights_off_the_cpu_kernels_match(monkeypatch):
+    """The torch path of `vertex_weights` (a GPU's: no sample goes to the host) gives what the
+    numba CPU path gives."""
+    from recon import devices
+
+    model, data = trained_sphere(steps=40)
+    rays = data.rays()
+    o, d = rays["origins"][::3], rays["directions"][::3]
+    cpu = model.vertex_weights(o, d)
+    monkeypatch.setattr(devices, "uses_cpu_kernels", lambda t: False)
+    twin = model.vertex_weights(o, d)
+    assert float(cpu.max()) > 0.05
+    torch.testing.assert_close(twin, cpu, rtol=0, atol=1e-5)
 
 
 def test_finish_prunes_unseen_vertices_and_keeps_the_renders():

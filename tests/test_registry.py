@@ -60,3 +60,20 @@ def test_a_saved_config_with_a_removed_option_still_loads():
     assert GaussiansConfig(**config_from_json(GaussiansConfig, saved)).pose_refine
     pleno = config_from_json(PlenoxelConfig, {"resolutions": [32, 64]})
     assert PlenoxelConfig(**pleno).resolutions == (32, 64)
+
+
+def test_choose_device_says_why(monkeypatch):
+    """auto takes CUDA when there is one and names it; --device cuda without one is an error
+    (the CLI's one line: tests/test_cli_device.py)."""
+    from recon.models.registry import choose_device, pick_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda i=0: "NVIDIA H200")
+    assert choose_device("auto") == (torch.device("cuda"), "auto: CUDA available: NVIDIA H200")
+    assert choose_device("cpu") == (torch.device("cpu"), "--device cpu")
+    assert choose_device("cuda") == (torch.device("cuda"), "--device cuda")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert choose_device("auto") == (torch.device("cpu"), "auto: no CUDA device")
+    assert pick_device("auto") == torch.device("cpu")
+    with pytest.raises(ValueError, match="no CUDA device is available"):
+        choose_device("cuda")

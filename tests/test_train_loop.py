@@ -220,20 +220,24 @@ def test_interrupt_during_an_evaluation_stops_between_views():
     assert len(renders) == 3 and model.training  # stopped inside the first evaluation
 
 
-def test_non_finite_loss_raises_at_once():
-    model, logs = Toy(poison_steps={3}), []
-    with pytest.raises(FloatingPointError):
-        run_loop(
-            model,
-            _data(),
-            None,
-            None,
-            TrainConfig(method="toy", steps=10),
-            LoopState(),
-            logs.append,
-            lambda st: None,
-        )
-    assert any(e.get("event") == "non_finite_loss" for e in logs)
+def test_non_finite_loss_raises_by_the_next_log():
+    """The loss is read only on logged steps (every 10th: no host sync a step on a GPU), so a
+    NaN at step 4 (0-based 3) is caught at step 10; a checkpoint reads it first."""
+    for checkpoint_every_s, caught_at in ((1e9, 10), (0.0, 4)):
+        model, logs, saved = Toy(poison_steps={3}), [], []
+        with pytest.raises(FloatingPointError, match="loss became nan"):
+            run_loop(
+                model,
+                _data(),
+                None,
+                None,
+                TrainConfig(method="toy", steps=20, checkpoint_every_s=checkpoint_every_s),
+                LoopState(),
+                logs.append,
+                lambda st, saved=saved: saved.append(st.step),
+            )
+        events = [e["step"] for e in logs if e.get("event") == "non_finite_loss"]
+        assert events == [caught_at] and all(step < 4 for step in saved)
 
 
 def test_overrides_are_typed_and_validated():

@@ -77,3 +77,23 @@ def test_a_budgeted_loop_hands_the_model_a_shorter_run(monkeypatch):
     model, st = Slow(), LoopState()
     run_loop(model, _data(), None, None, TrainConfig("toy", steps=30), st, logs.append, print)
     assert model.plan.calls == [] and st.schedule_steps == 0
+
+
+def test_a_budgeted_run_plans_its_schedules_on_any_device():
+    """The plan (and so the re-plan, which never lengthens past it) comes from the budget at
+    the device's measured speed, a GPU's too: a device 20x faster plans ~20x the steps, the
+    paper preset's schedules scaled into them."""
+    from recon.models.registry import method_spec
+    from recon.train.resolution import WorkingResolution, plan_schedules
+    from recon.train.throughput import REFERENCE, Speed
+
+    spec = method_spec("3dgs")
+    paper = spec.config_cls(**spec.presets["paper"])
+    cfg = TrainConfig(method="3dgs", time_budget_s=600)
+    res = WorkingResolution(2, 538, 956, "auto", "")
+    cpu = plan_schedules(paper, spec, cfg, res, REFERENCE).schedule_steps
+    gpu = plan_schedules(paper, spec, cfg, res, Speed(20.0, 20.0, "measured")).schedule_steps
+    assert (cpu, gpu) == (1063, 21264)  # 600 / (0.05 + 514,328 px / 1M px/s), then / 20
+    assert plan_schedules(paper, spec, TrainConfig("3dgs", steps=500), res, REFERENCE) == (
+        dataclasses.replace(paper, schedule_steps=500)
+    )

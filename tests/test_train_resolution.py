@@ -5,23 +5,33 @@ import dataclasses
 import pytest
 
 from recon.models.base import ResolutionPolicy
-from recon.train.resolution import MIN_SIDE, choose_resolution, downscale_for_max_side, epochs_at
+from recon.train.resolution import (
+    MIN_SIDE,
+    choose_resolution,
+    downscale_for_max_side,
+    epochs_at,
+    planned_steps,
+    probe_levels,
+)
+from recon.train.throughput import REFERENCE, ProbeSample, Speed, prior_speed, settled_speed
 
 # a policy of 350k px/s (3dgs's before it was measured on a quiet machine): worked examples
 SPLATS = ResolutionPolicy(pixels_per_s=350e3, pixels_per_step=0.0, min_epochs=30.0, max_side=1600)
 RAYS = ResolutionPolicy(pixels_per_s=12e3, pixels_per_step=3000.0, min_epochs=1.0, max_side=800)
 FOX = (1076, 1913, 58)  # recon sfm's undistorted fox photos, 58 training views
+FOX_NOW = (1067, 1899, 58)  # the same, as today's recon sfm undistorts them (the 2026-11-28 table)
 
 
 def test_epochs_worked_example():
     # 600 s * 350k px/s over 58 views of 269 x 478 = 2.1e8 / 7.458e6 = 28.2 passes
-    assert epochs_at(269, 478, 58, SPLATS, 600, 0, 2) == pytest.approx(28.16, abs=0.01)
-    assert epochs_at(269, 478, 58, SPLATS, 600, 0, 4) == pytest.approx(
+    assert epochs_at(269, 478, 58, SPLATS, 600, 0, REFERENCE) == pytest.approx(28.16, abs=0.01)
+    four_threads = prior_speed(4)
+    assert epochs_at(269, 478, 58, SPLATS, 600, 0, four_threads) == pytest.approx(
         2 * 28.16, abs=0.02
-    )  # 4 threads
+    )
     # a --steps run of a whole-image-per-step method makes steps / views passes at any size
-    assert epochs_at(269, 478, 58, SPLATS, 0, 5800, 2) is None
-    assert epochs_at(100, 100, 10, RAYS, 0, 1000, 2) == pytest.approx(30.0)  # 3e6 rays / 1e5 px
+    assert epochs_at(269, 478, 58, SPLATS, 0, 5800) is None
+    assert epochs_at(100, 100, 10, RAYS, 0, 1000) == pytest.approx(30.0)  # 3e6 rays / 1e5 px
 
 
 def test_fox_ten_minutes_at_350k_px_per_s_trains_at_one_fifth():
@@ -39,6 +49,94 @@ def test_the_3dgs_policy_on_fox_by_budget():
         for b in (120, 300, 600, 1800)
     ]
     assert levels == [9, 6, 4, 3]
+
+
+# What the throughput probe measured on the reference machine itself (2 threads of the benchmark
+# VM, quiet, several probes each; the fastest of eight steps at each probed size): fox
+# (1067 x 1899, 2 views; 3dgs at levels 15 and 8, the others at 15) and lego-200 (3dgs at levels
+# 2 and 1, the others at 2). A ray method's pixels are its batch (`Model.step_pixels`).
+PROBED = {
+    ("fox", "3dgs"): [ProbeSample(8946, 0.0121, 8), ProbeSample(31521, 0.0216, 8)],
+    ("lego", "3dgs"): [ProbeSample(10000, 0.0147, 8), ProbeSample(40000, 0.0325, 8)],
+    ("fox", "ngp"): [ProbeSample(2500, 0.0930, 8)],
+    ("lego", "ngp"): [ProbeSample(2500, 0.0830, 8)],
+    ("fox", "nerf"): [ProbeSample(1024, 0.228, 8)],
+    ("lego", "nerf"): [ProbeSample(1024, 0.174, 8)],
+    ("fox", "plenoxel"): [ProbeSample(12000, 0.0463, 8)],
+    ("lego", "plenoxel"): [ProbeSample(12000, 0.0289, 8)],
+    ("fox", "sdf"): [ProbeSample(1024, 0.132, 8)],
+    ("lego", "sdf"): [ProbeSample(1024, 0.132, 8)],
+}
+BUDGETS = (120, 300, 600, 1800)
+
+
+def _settled(scene: str, method: str, slower: float = 1.0) -> Speed:
+    from recon.models.registry import method_spec
+
+    samples = [ProbeSample(s.pixels, s.step_s * slower, s.steps) for s in PROBED[(scene, method)]]
+    return settled_speed(method_spec(method).resolution, samples, prior_speed(2))
+
+
+@pytest.mark.parametrize("noise", [1.0, 0.85, 1.15])
+def test_this_machines_probe_keeps_the_fox_real_and_lego_200_choices(noise):
+    """The probe's figures of the reference machine settle on the prior (within
+    PRIOR_TOLERANCE, also 15 % off either way), so the fox-real benchmark's levels (3dgs 1/9,
+    1/6, 1/4, 1/3 and ngp 1/10, 1/7, 1/5, 1/3 at 2, 5, 10 and 30 minutes), every method's full
+    size on lego-200 (nerf's protocol budget 30 minutes) and 3dgs's lego-200 plan stay as they
+    were."""
+    from recon.models.registry import METHOD_NAMES, method_spec
+
+    expected = {"3dgs": [9, 6, 4, 3], "ngp": [10, 7, 5, 3]}
+    for method, levels in expected.items():
+        policy = method_spec(method).resolution
+        speed = _settled("fox", method, noise)
+        assert speed.source == "prior" and (speed.overhead, speed.pixels) == (1.0, 1.0)
+        for fox in (FOX, FOX_NOW):
+            got = [choose_resolution(*fox, policy, b, 0, speed).downscale for b in BUDGETS]
+            assert got == levels, (method, noise, fox, speed.reason)
+    for method in METHOD_NAMES:
+        policy = method_spec(method).resolution
+        for scene in ("fox", "lego"):
+            speed = _settled(scene, method, noise)
+            assert speed.source == "prior", (method, scene, noise, speed.reason)
+        budget = 1800 if method == "nerf" else 600
+        assert choose_resolution(200, 200, 100, policy, budget, 0, speed).downscale == 1
+    policy = method_spec("3dgs").resolution
+    assert planned_steps(200, 200, policy, 600, 0, _settled("lego", "3dgs", noise)) == 6666
+
+
+def test_a_much_faster_device_trains_finer_and_plans_more_steps():
+    """A GPU-like probe (fox 3dgs steps of 4.5 and 5.5 ms): measured, not the prior; finer
+    levels and more planned steps than on the reference machine. And what an H200 measured
+    for ngp's paper preset on fox (a sample target 4x the fast one's: 10,000 rays a step in
+    32.5 ms): ~11x the reference, the 800 px cap (1/3) at every budget."""
+    from recon.models.registry import method_spec
+
+    ngp = method_spec("ngp").resolution
+    h200 = settled_speed(ngp, [ProbeSample(10000, 0.0325, 16)], None)  # no prior off a CPU
+    assert h200.source == "measured" and h200.pixels == pytest.approx(11.0, rel=0.05)
+    assert [choose_resolution(*FOX_NOW, ngp, b, 0, h200).downscale for b in BUDGETS] == [3] * 4
+
+    policy = method_spec("3dgs").resolution
+    samples = [ProbeSample(8946, 0.0045, 8), ProbeSample(31521, 0.0055, 8)]
+    gpu = settled_speed(policy, samples, prior_speed(2))
+    assert gpu.source == "measured" and gpu.overhead > 1 and gpu.pixels > 10
+    cpu = [choose_resolution(*FOX, policy, b).downscale for b in (120, 600)]
+    fast = [choose_resolution(*FOX, policy, b, 0, gpu).downscale for b in (120, 600)]
+    assert fast[0] < cpu[0] and fast[1] < cpu[1]
+    assert planned_steps(269, 478, policy, 600, 0, gpu) > 2 * planned_steps(
+        269, 478, policy, 600, 0
+    )
+
+
+def test_probe_levels():
+    from recon.models.registry import method_spec
+
+    splats, rays = method_spec("3dgs").resolution, method_spec("ngp").resolution
+    assert probe_levels(1076, 1913, splats) == [15, 8]  # 71 x 127 and 134 x 239
+    assert probe_levels(200, 200, splats) == [2, 1]
+    assert probe_levels(1076, 1913, rays) == [15]  # a ray batch costs the same at any level
+    assert probe_levels(16, 16, splats) == [1]
 
 
 def test_more_time_means_a_finer_level():
@@ -60,8 +158,9 @@ def test_without_a_size_dependent_budget_the_cap_decides():
         kw.pop("patience", None)
         res = choose_resolution(*FOX, SPLATS, **kw)
         assert res.downscale == 2 and max(res.width, res.height) <= 1600  # 956 px
-    gpu = choose_resolution(*FOX, SPLATS, time_budget_s=60, cpu=False)
-    assert gpu.downscale == 2 and "throughput" in gpu.reason
+    # a device 100x faster: 60 s are enough for the cap
+    gpu = choose_resolution(*FOX, SPLATS, time_budget_s=60, speed=Speed(100.0, 100.0, "measured"))
+    assert gpu.downscale == 2 and "capped" in gpu.reason
 
 
 def test_never_coarser_than_the_floor():
@@ -99,29 +198,25 @@ def test_every_method_keeps_lego_200_at_its_size_under_the_protocol_budgets():
 
 
 def test_planned_steps_worked_example():
-    from recon.train.resolution import planned_steps
-
-    assert planned_steps(269, 478, SPLATS, 600, 0, 2) == 1633  # 600 * 350e3 / 128582
-    assert planned_steps(269, 478, SPLATS, 600, 1000, 2) == 1000  # --steps comes first
-    assert planned_steps(269, 478, RAYS, 600, 0, 2) == 2400  # 600 * 12e3 / 3000 rays a step
-    assert (
-        planned_steps(269, 478, SPLATS, 0, 0, 2) == 0
-        and planned_steps(269, 478, SPLATS, 600, 0, 2, cpu=False) == 0
-    )
+    assert planned_steps(269, 478, SPLATS, 600, 0) == 1633  # 600 * 350e3 / 128582
+    assert planned_steps(269, 478, SPLATS, 600, 1000) == 1000  # --steps comes first
+    assert planned_steps(269, 478, RAYS, 600, 0) == 2400  # 600 * 12e3 / 3000 rays a step
+    assert planned_steps(269, 478, SPLATS, 0, 0) == 0  # nothing bounds the run
     affine = dataclasses.replace(SPLATS, step_overhead_s=0.05, step_pixels_per_s=1e6)
-    assert planned_steps(269, 478, affine, 600, 0, 2) == 3359  # 600 / (0.05 + 128582 / 1e6)
-    assert planned_steps(269, 478, affine, 600, 0, 4) == 6719  # twice the threads
-    assert planned_steps(358, 638, affine, 1800, 0, 2) == 6465  # fox-real made 6,479
+    assert planned_steps(269, 478, affine, 600, 0) == 3359  # 600 / (0.05 + 128582 / 1e6)
+    assert planned_steps(269, 478, affine, 600, 0, prior_speed(4)) == 6719  # twice the threads
+    assert planned_steps(358, 638, affine, 1800, 0) == 6465  # fox-real made 6,479
+    # any device plans: 2x the fixed cost, 4x the per-pixel cost -> 600 / (0.025 + 0.0321)
+    assert planned_steps(269, 478, affine, 600, 0, Speed(2.0, 4.0, "measured")) == 10499
 
 
 def test_3dgs_plans_the_fox_real_runs_within_ten_percent_of_their_steps():
     """The steps the 3dgs policy plans for the four quiet fox-real runs (2, 5, 10, 30 min at
     the levels the rule chose) against the steps they made (commits a87c7be, 4497ef7)."""
     from recon.models.splatting import RESOLUTION
-    from recon.train.resolution import planned_steps
 
     made = {(120, 119, 212): 1623, (300, 179, 319): 2625, (600, 269, 478): 3642}
     made[(1800, 358, 638)] = 6479
     for (budget, w, h), steps in made.items():
-        plan = planned_steps(w, h, RESOLUTION, budget, 0, 2)
+        plan = planned_steps(w, h, RESOLUTION, budget, 0)
         assert abs(plan - steps) < 0.1 * steps, (budget, plan, steps)

@@ -9,9 +9,9 @@ import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
 from recon.cli.progress import Progress
-from recon.models.registry import METHOD_NAMES, method_spec
+from recon.models.registry import METHOD_NAMES, method_spec, pick_device
 from recon.options import config_option, field_help, from_options
-from recon.train.config import TrainConfig
+from recon.train.config import TrainConfig, resolve_preset
 from recon.train.stage import train
 from recon.workspace import Workspace
 from recon.workspace.runs import load_run
@@ -143,8 +143,10 @@ def command(
         run = run or f"{bake_from}-baked"
         if run == bake_from:
             raise click.UsageError("--bake-from RUN writes a new run: give another --run")
+    device = pick_device(options["device"])  # --device cuda without one: an error, up front
     if not (options["steps"] or options["time_budget_s"] or options["patience"]):
-        method_cfg = spec.config_cls(**spec.presets.get(options["preset"], {}))
+        preset, _ = resolve_preset(options["preset"], spec.presets, device.type)
+        method_cfg = spec.config_cls(**spec.presets.get(preset, {}))
         options["steps"] = int(getattr(method_cfg, "default_steps", 0)) or 0
         if not options["steps"]:
             raise click.UsageError("give --steps, --time-budget or --patience")

@@ -15,16 +15,22 @@ All levels live in ONE flat table (total_entries, F) at per-level offsets, so an
 gather. Two implementations with the same maths: `hash_encode_torch` (any device, autograd for
 features and positions) and a numba CPU kernel (`hash_encode`, features only), which avoids
 materialising the (N, L, 8) index/weight tensors; tests compare them on values and gradients.
+The torch path reads the per-level constants from tensors made once per layout and device
+(`level_tensors`): an encode on a GPU copies nothing from the host.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 import torch
 from torch import Tensor, nn
+
+from recon import devices
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -47,6 +53,38 @@ def level_layout(n_levels: int, n_min: int, n_max: int, table_size: int) -> dict
     return {"resolution": res, "size": sizes, "dense": dense, "offset": offsets}
 
 
+class LevelTensors(NamedTuple):
+    """A `level_layout` as tensors on one device: resolution, size, offset (L,) int64, dense
+    (L,) bool, and the corner offsets bits (8, 3) int64, corner c = (c & 1, c >> 1 & 1, c >> 2 & 1)."""
+
+    resolution: Tensor
+    size: Tensor
+    offset: Tensor
+    dense: Tensor
+    bits: Tensor
+
+
+def level_tensors(layout: dict[str, list[int]], device: torch.device) -> LevelTensors:
+    """The layout's constants on `device`, made on the first call for this layout and device and
+    kept (constants: a host-to-device copy per encode would block a GPU step)."""
+    key = tuple(tuple(layout[k]) for k in ("resolution", "size", "offset", "dense"))
+    return _level_tensors(key, torch.device(device))
+
+
+@functools.lru_cache(maxsize=64)
+def _level_tensors(key: tuple, device: torch.device) -> LevelTensors:
+    resolution, size, offset, dense = key
+    bits = [[(c >> k) & 1 for k in range(3)] for c in range(8)]
+    with torch.inference_mode(False):  # usable by autograd wherever they were first made
+        return LevelTensors(
+            torch.tensor(resolution, dtype=torch.int64, device=device),
+            torch.tensor(size, dtype=torch.int64, device=device),
+            torch.tensor(offset, dtype=torch.int64, device=device),
+            torch.tensor(dense, dtype=torch.bool, device=device),
+            torch.tensor(bits, dtype=torch.int64, device=device),
+        )
+
+
 def spatial_hash(ijk: Tensor, table_size: int | Tensor) -> Tensor:
     """(x * 1 ^ y * 2654435761 ^ z * 805459861) mod T for int64 vertices (..., 3) -> (...);
     T an int or a tensor broadcastable to (...)."""
@@ -61,21 +99,17 @@ def corner_indices_and_weights(x: Tensor, layout: dict[str, list[int]]) -> tuple
     last cell with fraction 1 (points on faces/corners use the cell below). Corner c has bits
     (c & 1, c >> 1 & 1, c >> 2 & 1) for (x, y, z).
     """
-    dev = x.device
-    res = torch.tensor(layout["resolution"], device=dev)
+    lv = level_tensors(layout, x.device)
+    res, bits = lv.resolution, lv.bits  # (L,), (8, 3)
     pos = x.clamp(0.0, 1.0)[:, None, :] * res[None, :, None].to(x.dtype)  # (N, L, 3)
     i0 = torch.minimum(pos.floor().long(), (res - 1)[None, :, None])
     frac = pos - i0.to(x.dtype)
-    bits = torch.tensor([[(c >> k) & 1 for k in range(3)] for c in range(8)], device=dev)  # (8, 3)
     ijk = i0[:, :, None, :] + bits  # (N, L, 8, 3)
     w = torch.where(bits.bool(), frac[:, :, None, :], 1.0 - frac[:, :, None, :]).prod(dim=-1)
     stride = res + 1
     dense_idx = ijk[..., 0] + stride[:, None] * (ijk[..., 1] + stride[:, None] * ijk[..., 2])
-    dense = torch.tensor(layout["dense"], device=dev)[:, None]
-    table = torch.tensor(layout["size"], device=dev)[:, None]
-    idx = torch.where(dense, dense_idx, spatial_hash(ijk, table))
-    offsets = torch.tensor(layout["offset"], device=dev)[:, None]
-    return idx + offsets, w
+    idx = torch.where(lv.dense[:, None], dense_idx, spatial_hash(ijk, lv.size[:, None]))
+    return idx + lv.offset[:, None], w
 
 
 def hash_encode_torch(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tensor:
@@ -224,7 +258,7 @@ def hash_encode(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tenso
     d/dx by autograd) uses `hash_encode_torch`. Both give the same values and table gradients.
     The Jacobian in x, for normals and an eikonal loss, is in `recon.fields.hashgrid_jacobian`.
     """
-    if x.device.type == "cpu" and not x.requires_grad and x.dtype == table.dtype:
+    if devices.uses_cpu_kernels(x) and not x.requires_grad and x.dtype == table.dtype:
         return _HashEncodeCPU.apply(x, table, layout)
     return hash_encode_torch(x, table, layout)
 

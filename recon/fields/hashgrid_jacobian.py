@@ -15,7 +15,8 @@ of both from one scatter:
     d loss / d table[row_c, k] += w_c g_enc[l F + k] + sum_a (d w_c / d x_a) g_jac[l F + k, a].
 
 The numba kernels run on CPU; `hash_jacobian_torch` with `hash_encode_torch` is the twin used
-elsewhere and in the tests.
+elsewhere (its level constants resident on the device: `hashgrid.level_tensors`) and in the
+tests.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from recon import devices
 from recon.fields.hashgrid import (
     _cell,
     _fill_corners,
@@ -32,6 +34,7 @@ from recon.fields.hashgrid import (
     _level,
     corner_indices_and_weights,
     hash_encode_torch,
+    level_tensors,
 )
 
 
@@ -149,11 +152,11 @@ def hash_jacobian_torch(x: Tensor, table: Tensor, layout: dict[str, list[int]]) 
     sum_c table[row_c] dw_c/dx_a, with dw_c/dx_a = N_l (+-1) x the other two axes' factors;
     0 outside (0, 1)^3, where the encoding clamps x."""
     idx, _ = corner_indices_and_weights(x, layout)  # (N, L, 8)
-    res = torch.tensor(layout["resolution"], device=x.device).to(x.dtype)
+    lv = level_tensors(layout, x.device)
+    res, bits = lv.resolution.to(x.dtype), lv.bits
     pos = x.clamp(0.0, 1.0)[:, None, :] * res[None, :, None]  # (N, L, 3)
     i0 = torch.minimum(pos.floor(), (res - 1)[None, :, None])
     frac = pos - i0
-    bits = torch.tensor([[(c >> k) & 1 for k in range(3)] for c in range(8)], device=x.device)
     factor = torch.where(bits.bool(), frac[:, :, None, :], 1.0 - frac[:, :, None, :])  # N,L,8,3
     slope = torch.where(bits.bool(), 1.0, -1.0).to(x.dtype) * res[None, :, None, None]
     dw = torch.stack(
@@ -174,6 +177,6 @@ def hash_encode_and_jacobian(
 ) -> tuple[Tensor, Tensor]:
     """(encoding (N, L F), d(encoding)/dx (N, L F, 3)) at x (N, 3), both differentiable in the
     table and not in x: one numba pass on CPU, the torch twins elsewhere."""
-    if x.device.type == "cpu" and x.dtype == table.dtype:
+    if devices.uses_cpu_kernels(x) and x.dtype == table.dtype:
         return _HashEncodeJacobianCPU.apply(x, table, layout)
     return hash_encode_torch(x.detach(), table, layout), hash_jacobian_torch(x, table, layout)

@@ -14,6 +14,8 @@ import numba
 import torch
 from torch import Tensor
 
+from recon import devices
+
 
 @numba.njit(cache=True, inline="always")
 def lattice_cell(x0, x1, x2, res):
@@ -71,7 +73,8 @@ def _corners(x, res, links, rows, w):
 
 
 def corners(x_unit: Tensor, res: int, links: Tensor) -> tuple[Tensor, Tensor]:
-    """Linked rows (N, 8) (-1 = pruned) and trilinear weights (N, 8) of unit-cube points (N, 3)."""
+    """Linked rows (N, 8) (-1 = pruned) and trilinear weights (N, 8) of unit-cube points (N, 3)
+    (CPU tensors; the torch twin, for other devices: `voxels.linked_corners_torch`)."""
     x = x_unit.detach().contiguous()
     rows = torch.empty((x.shape[0], 8), dtype=torch.int64)
     w = torch.empty((x.shape[0], 8), dtype=x.dtype)
@@ -128,7 +131,7 @@ class TrilinearGather(torch.autograd.Function):
 
 def trilinear_gather(data: Tensor, rows: Tensor, w: Tensor) -> Tensor:
     """Fast path on CPU (numba); plain torch elsewhere (e.g. CUDA)."""
-    if data.device.type == "cpu" and data.dtype in (torch.float32, torch.float64):
+    if devices.uses_cpu_kernels(data) and data.dtype in (torch.float32, torch.float64):
         return TrilinearGather.apply(data, rows, w)
     valid = (rows >= 0).to(w.dtype)
     return (data[rows.clamp_min(0)] * (w * valid)[..., None]).sum(dim=1)

@@ -8,14 +8,32 @@ plain-torch twin (autograd through a gather), used on other devices and in the t
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from recon import devices
 from recon.fields.voxel_kernels import corners, trilinear_gather
 
 # (8, 3) corner offsets in x, y, z order
 CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+@functools.lru_cache(maxsize=8)
+def _corners_on(device: torch.device) -> Tensor:
+    """CORNERS on `device`, copied there once (a copy per lookup would block a GPU step)."""
+    with torch.inference_mode(False):
+        return CORNERS.to(device)
+
+
+def linked_corners_torch(x_unit: Tensor, res: int, links: Tensor) -> tuple[Tensor, Tensor]:
+    """Linked rows (N, 8) int64 (-1 = pruned) and trilinear weights (N, 8) of unit-cube points
+    (N, 3): `trilinear_corners` then the links lookup, the torch twin of
+    `voxel_kernels.corners`."""
+    idx, w = trilinear_corners(x_unit, res)
+    return links[idx].long(), w
 
 
 def flat_index(ijk: Tensor, res: int) -> Tensor:
@@ -31,7 +49,7 @@ def trilinear_corners(x_unit: Tensor, res: int) -> tuple[Tensor, Tensor]:
     g = x_unit.clamp(0.0, 1.0) * (res - 1)
     i0 = g.floor().clamp(max=res - 2).long()
     f = g - i0.to(g.dtype)
-    corners = CORNERS.to(x_unit.device)
+    corners = _corners_on(x_unit.device)
     idx = flat_index(i0[:, None, :] + corners[None], res)
     w = torch.where(corners[None].bool(), f[:, None, :], 1.0 - f[:, None, :]).prod(dim=-1)
     return idx, w
@@ -62,9 +80,19 @@ class SparseVoxelGrid(nn.Module):
     def num_rows(self) -> int:
         return self.coords.shape[0]
 
+    def corners(self, x_unit: Tensor) -> tuple[Tensor, Tensor]:
+        """Linked rows (N, 8) int64 (-1 = pruned) and trilinear weights (N, 8) of unit-cube
+        points (N, 3): numba on the CPU (`voxel_kernels.corners`), else `linked_corners_torch`."""
+        if devices.uses_cpu_kernels(x_unit) and x_unit.dtype in (torch.float32, torch.float64):
+            return corners(x_unit, self.res, self.links)
+        return linked_corners_torch(x_unit.detach(), self.res, self.links)
+
     def query(self, x_unit: Tensor, names: list[str] | None = None) -> dict[str, Tensor]:
         """Trilinear values at unit-cube points (N, 3) -> {name: (N, C)}."""
-        if x_unit.device.type != "cpu" or x_unit.dtype not in (torch.float32, torch.float64):
+        if not devices.uses_cpu_kernels(x_unit) or x_unit.dtype not in (
+            torch.float32,
+            torch.float64,
+        ):
             return self.query_reference(x_unit, names)
         rows, w = corners(x_unit, self.res, self.links)
         return {
@@ -74,8 +102,7 @@ class SparseVoxelGrid(nn.Module):
 
     def query_reference(self, x_unit: Tensor, names: list[str] | None = None) -> dict[str, Tensor]:
         """The slow twin of `query`: torch gather, autograd backward."""
-        idx, w = trilinear_corners(x_unit, self.res)
-        rows = self.links[idx].long()
+        rows, w = linked_corners_torch(x_unit, self.res, self.links)
         w = w * (rows >= 0).to(w.dtype)
         rows = rows.clamp_min(0)
         return {

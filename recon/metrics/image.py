@@ -32,8 +32,11 @@ def psnr_from_mse(mse, max_val: float = 1.0):
     return math.inf if mse <= 0 else 10.0 * math.log10(max_val**2 / mse)
 
 
-def training_psnr(mse: float) -> float:
-    """PSNR of a training step or a quick held-out check, for the logs: finite (<= 100 dB)."""
+def training_psnr(mse: float | Tensor) -> float | Tensor:
+    """PSNR of a training step or a quick held-out check, for the logs: finite (<= 100 dB). A
+    tensor MSE gives a detached 0-d float64 tensor on its device (no host sync)."""
+    if isinstance(mse, Tensor):
+        return psnr_from_mse(mse.detach().double().clamp_min(LOG_MSE_FLOOR))
     return psnr_from_mse(max(float(mse), LOG_MSE_FLOOR))
 
 

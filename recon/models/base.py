@@ -7,6 +7,7 @@ get images back. Each method module (`nerf`, `ngp`, `plenoxel`, `gaussians`) reg
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -15,6 +16,7 @@ from torch import Tensor, nn
 
 from recon.cameras import Cameras
 from recon.cameras.rays import rays_from_pixels
+from recon.devices import generator_on
 
 
 @dataclass
@@ -118,7 +120,7 @@ class TrainData:
 
     def rays(self) -> dict[str, Tensor]:
         """Every training pixel's ray (`rays_at` of all of them), in (C, H, W) order."""
-        return self.rays_at(torch.arange(self.num_pixels))
+        return self.rays_at(torch.arange(self.num_pixels, device=self.images.device))
 
 
 def recomposite(rgb: Tensor, alpha: Tensor, old: Tensor, new: Tensor) -> Tensor:
@@ -138,7 +140,7 @@ def training_targets(
     target = batch["rgb"]
     if not random_background:
         return target, None
-    new = torch.rand(target.shape[0], 3, generator=generator).to(target)
+    new = torch.rand(target.shape[0], 3, generator=generator, device=generator.device).to(target)
     return recomposite(target, batch["alpha"], old, new), new
 
 
@@ -146,7 +148,10 @@ class Model(nn.Module):
     """A trainable scene. Subclasses implement the four methods below.
 
     `train_step` owns its optimizers, batching and any densification/pruning, so the stage
-    code stays a plain loop; it returns scalars for the log (at least "loss").
+    code stays a plain loop; it returns scalars for the log (at least "loss"): Python numbers
+    where the host already knows them (a tensor's shape), else detached 0-d tensors on the
+    model's device, which the loop reads (one host sync) only on the steps it logs. A step on a
+    GPU makes no host round trip of its own (`tests/test_device_clean.py`).
     `render` returns, for ONE camera, "rgb" (H, W, 3), "depth" (H, W) as z-depth along the
     optical axis in normalized units, and "acc" (H, W) accumulated opacity.
 
@@ -169,7 +174,13 @@ class Model(nn.Module):
         line the train stage logs), or None."""
         return None
 
-    def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+    def step_pixels(self, data: TrainData) -> int:
+        """The training pixels (rays) the next `train_step` fits: one whole image by default;
+        a model that samples ray batches, its batch (the throughput probe counts them,
+        `recon.train.throughput`)."""
+        return data.images.shape[1] * data.images.shape[2]
+
+    def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
         raise NotImplementedError
 
     @torch.no_grad()
@@ -215,6 +226,19 @@ class Model(nn.Module):
         schedules)."""
         return 0
 
+    def _apply(self, fn, recurse: bool = True):
+        """`nn.Module.to` / `.cuda()` / `.cpu()`: the torch.Generators the model owns follow its
+        tensors to their device (`recon.devices.generator_on`), so random numbers are drawn
+        where they are used. A model is moved before it trains (its generators still at their
+        seeds); a moved generator restarts from its seed."""
+        module = super()._apply(fn, recurse)
+        tensor = next(itertools.chain(self.parameters(), self.buffers()), None)
+        if tensor is not None:
+            for name, value in list(vars(self).items()):
+                if isinstance(value, torch.Generator):
+                    setattr(self, name, generator_on(value, tensor.device))
+        return module
+
     def reseed(self, seed: int) -> None:
         """Reseed every torch.Generator the model owns (after a rollback, retried steps must
         not replay the batches that produced a non-finite loss)."""
@@ -232,16 +256,23 @@ class ResolutionPolicy:
     """What a method needs from its training images, to choose its working resolution
     (`recon.train.resolution`): how many training pixels it gets through per second, how many
     passes over every pixel it needs to fit a resolution, and the longest side it trains on
-    when no time budget bounds the run."""
+    when no time budget bounds the run. The rates are whole runs' averages on the reference
+    machine (2 threads of the benchmark VM's CPU); a run elsewhere scales them by the speed
+    its throughput probe measures against the probe's time there (`recon.train.throughput`)."""
 
-    pixels_per_s: float = 350e3  # training pixels (rays) per second on a 2-thread CPU, measured
+    pixels_per_s: float = 350e3  # training pixels (rays) per second on the reference machine
     pixels_per_step: float = 0.0  # pixels per step for a --steps run (0: one whole image per step)
     min_epochs: float = 30.0  # passes over every training pixel the method needs at one size
-    max_side: int = 1600  # longest image side trained on without a time budget (or on a GPU)
+    max_side: int = 1600  # longest image side trained on without a time budget
     # The step plan (`planned_steps`, which lays out the step schedules) may take a step's time
     # as affine in its pixels instead: step_overhead_s + pixels / step_pixels_per_s
-    step_overhead_s: float = 0.0  # seconds a step costs whatever its size, on 2 threads
+    step_overhead_s: float = 0.0  # seconds a step costs whatever its size, on the reference
     step_pixels_per_s: float = 0.0  # pixels a second beyond that overhead (0: pixels_per_s)
+    # The throughput probe's steps on the reference machine (its first steps, not a run's
+    # average): probe_overhead_s + P / probe_pixels_per_s for P pixels a step (the method's
+    # pixels_per_step, or the probe image's); 0: never measured, the run takes the prior speed
+    probe_overhead_s: float = 0.0
+    probe_pixels_per_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from recon import devices
 from recon.cameras import Cameras, camera_rays
 from recon.fields.sh import C0, eval_sh, num_sh_bases, sh_basis
-from recon.fields.voxel_kernels import corners
 from recon.fields.voxels import SparseVoxelGrid
 from recon.io.packed import (
     bits_indices,
@@ -184,11 +184,18 @@ class PlenoxelModel(Model):
     def to_unit(self, x: Tensor) -> Tensor:
         return scene_to_unit_cube(x, self.aabb, self.scene.unbounded)
 
+    def _box_side(self) -> float:
+        """The scene box's longest side, read from the device once (`devices.host_value`)."""
+        return devices.host_value(self, "side", self.aabb, lambda a: float((a[1] - a[0]).max()))
+
+    def _level(self) -> int:
+        """The current lattice's index in `lattice_sizes` (the `level` buffer, read once)."""
+        return devices.host_value(self, "level", self.level, int)
+
     def _density_scale(self, res: int | None = None) -> float:
         """sigma = relu(d) * res / box side: d = 1 gives optical thickness ~1 per voxel (res:
         the lattice's, by default the current one)."""
-        side = float((self.aabb[1] - self.aabb[0]).max())
-        return (res or self.res) / side * (0.5 if self.scene.unbounded else 1.0)
+        return (res or self.res) / self._box_side() * (0.5 if self.scene.unbounded else 1.0)
 
     def _sigma_unit(self, x_unit: Tensor) -> Tensor:
         d = self.grid.query(x_unit, ["density"])["density"][:, 0]
@@ -218,8 +225,7 @@ class PlenoxelModel(Model):
 
     # ---- rays ----------------------------------------------------------------------------
     def _step_t(self) -> float:
-        side = float((self.aabb[1] - self.aabb[0]).max())
-        return self.cfg.step_voxels * side / self.res
+        return self.cfg.step_voxels * self._box_side() / self.res
 
     def _ray_range(self, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, float]:
         """(t_min, t_max, cone angle) of each ray (R,): the scene box (bounded) or [near, far]."""
@@ -257,7 +263,7 @@ class PlenoxelModel(Model):
         packed (ray_indices, t_starts, t_ends). One numba pass on the CPU
         (`plenoxel_march.march_lattice_terminated`), else `_march_then_terminate`."""
         t_min, t_max, cone = self._ray_range(origins, dirs)
-        if origins.device.type != "cpu":
+        if not devices.uses_cpu_kernels(origins):
             return self._march_then_terminate(origins, dirs, t_min, t_max, cone, u)
         live = None if u is not None else self.live_cells()  # jittered: a training step
         return march_lattice_terminated(origins, dirs, t_min, t_max, u, self._lattice(cone, live))
@@ -309,7 +315,8 @@ class PlenoxelModel(Model):
 
     def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:
         R = origins.shape[0]
-        u = torch.rand(R, generator=self.generator).to(origins.device) if jitter else None
+        g = self.generator
+        u = torch.rand(R, generator=g, device=g.device).to(origins.device) if jitter else None
         ray_idx, t0, t1 = self.kept_samples(origins, dirs, u)
         mids = 0.5 * (t0 + t1)
         x = origins[ray_idx] + mids[:, None] * dirs[ray_idx]
@@ -328,17 +335,18 @@ class PlenoxelModel(Model):
     def vertex_weights(self, origins: Tensor, dirs: Tensor) -> Tensor:
         """For each data row (M,): the largest share a ray of these (R, 3) takes from it, the
         sample's blending weight w_i = T_i alpha_i times the vertex's trilinear weight there."""
-        best = torch.zeros(self.grid.num_rows, dtype=torch.float32)
+        links = self.grid.links
+        best = torch.zeros(self.grid.num_rows, dtype=torch.float32, device=links.device)
         for o, d in zip(origins.split(self.cfg.chunk), dirs.split(self.cfg.chunk)):
             out = self.render_rays(o, d, jitter=False)
             if not len(out["points"]):
                 continue
-            rows, w = corners(self.to_unit(out["points"]).cpu(), self.res, self.grid.links.cpu())
-            share = (out["weights"].float().cpu()[:, None] * w.float()).reshape(-1)
+            rows, w = self.grid.corners(self.to_unit(out["points"]))  # numba on the CPU only
+            share = (out["weights"].float()[:, None] * w.float()).reshape(-1)
             rows = rows.reshape(-1)
             linked = rows >= 0
             best.scatter_reduce_(0, rows[linked], share[linked], "amax")
-        return best.to(self.grid.links.device)
+        return best
 
     @torch.no_grad()
     def finish(self, data: TrainData) -> dict[str, float]:
@@ -358,7 +366,8 @@ class PlenoxelModel(Model):
         objects and the space behind what the cameras see."""
         s = max(1, self.cfg.finish_ray_stride)
         C, H, W, _ = data.images.shape
-        pixels = torch.arange(data.num_pixels).reshape(C, H, W)[:, ::s, ::s].reshape(-1)
+        pixels = torch.arange(data.num_pixels, device=data.images.device)
+        pixels = pixels.reshape(C, H, W)[:, ::s, ::s].reshape(-1)
         best = None
         for part in pixels.split(1 << 18):
             rays = data.rays_at(part)
@@ -381,23 +390,24 @@ class PlenoxelModel(Model):
         self._base_lrs = [self.cfg.lr_density, self.cfg.lr_sh]
 
     @torch.no_grad()
-    def _tv_step(self) -> float:
+    def _tv_step(self) -> Tensor:
         """The total-variation term w mean_(pairs, channels) (p_a - p_b)^2 over the +x/+y/+z
         neighbour pairs of a random tv_fraction of the rows (Fridovich-Keil et al. 2022, eq. 4):
         its gradient +-2 w (p_a - p_b) / (P C) is added to each data row's .grad in place (no
         dense (M, C) gradient per term, as autograd through index_select would allocate).
-        Returns the term's value."""
-        M = self.grid.num_rows
+        Returns the term's value, a 0-d float64 tensor on the grid's device (no host sync)."""
+        M, gen = self.grid.num_rows, self.generator
         k = max(1, int(self.cfg.tv_fraction * M))
-        rows = torch.randint(0, M, (k,), generator=self.generator).to(self.grid.links.device)
+        rows = torch.randint(0, M, (k,), generator=gen, device=gen.device)
+        rows = rows.to(self.grid.links.device)
         a, b = self.grid.neighbour_pairs(rows)
+        loss = torch.zeros((), dtype=torch.float64, device=self.grid.links.device)
         if a.numel() == 0:
-            return 0.0
-        loss = 0.0
+            return loss
         for name, w in (("density", self.cfg.tv_density), ("sh", self.cfg.tv_sh)):
             p = self.grid.data[name]
             diff = p.index_select(0, a) - p.index_select(0, b)
-            loss += w * float(diff.pow(2).mean())
+            loss = loss + w * diff.pow(2).mean().double()
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
             g = diff * (2 * w / diff.numel())
@@ -410,17 +420,18 @@ class PlenoxelModel(Model):
         cfg.resolutions is sized by `finest_lattice` from the training cameras `data` the first
         time they are given (a bake's voxels bake_voxel_pixels pixels wide), and kept (saved
         with the model)."""
-        if self.cfg.resolutions[-1] == 0 and int(self.finest) == 0 and data is not None:
+        finest = devices.host_value(self, "finest", self.finest, int)
+        if self.cfg.resolutions[-1] == 0 and finest == 0 and data is not None:
             side, footprint = self._box_and_pixel(data)
             if self.cfg.bake_from:
                 footprint *= self.cfg.bake_voxel_pixels
-            self.finest.fill_(finest_lattice(side, footprint, self.scene.unbounded))
-        return lattice_schedule(self.cfg.resolutions, int(self.finest))
+            finest = finest_lattice(side, footprint, self.scene.unbounded)
+            self.finest.fill_(finest)
+        return lattice_schedule(self.cfg.resolutions, finest)
 
     def _box_and_pixel(self, data: TrainData) -> tuple[float, float]:
         """The scene box's side and `pixel_footprint` of the training cameras at its centre."""
-        side = float((self.aabb[1] - self.aabb[0]).max())
-        return side, pixel_footprint(data.cameras, self.aabb.mean(0))
+        return self._box_side(), pixel_footprint(data.cameras, self.aabb.mean(0))
 
     def plan_note(self, data: TrainData) -> str | None:
         sizes = self.lattice_sizes(data)
@@ -440,7 +451,7 @@ class PlenoxelModel(Model):
         )
 
     def _maybe_upsample(self, step: int, data: TrainData) -> None:
-        lvl = int(self.level)
+        lvl = self._level()
         sizes = self.lattice_sizes(data)
         if (
             lvl + 1 < len(sizes)
@@ -508,10 +519,19 @@ class PlenoxelModel(Model):
         self._make_optimizer()
 
     def _update_occupancy(self, warmup: bool) -> None:
-        cell = float((self.aabb[1] - self.aabb[0]).max()) / self.cfg.occupancy_res
+        cell = self._box_side() / self.cfg.occupancy_res
         self.occupancy.update(self._sigma_unit, cell, warmup=warmup, generator=self.generator)
 
-    def train_step(self, data: TrainData, step: int) -> dict[str, float]:
+    def step_pixels(self, data: TrainData) -> int:
+        """With a sample target: RAYS_PER_STEP scaled by it (a target 4x the default's fits
+        ~4x the rays a step, whatever the scene's samples a ray); else the fixed batch."""
+        if self.cfg.samples_per_batch > 0:
+            return round(
+                RAYS_PER_STEP * self.cfg.samples_per_batch / PlenoxelConfig.samples_per_batch
+            )
+        return self.n_rays
+
+    def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
         if step == 0 and self.cfg.bake_from:
             self.bake(data)
         self._maybe_upsample(step, data)
@@ -523,7 +543,7 @@ class PlenoxelModel(Model):
         mse = F.mse_loss(out["rgb"], batch["rgb"])
         self.optimizer.zero_grad(set_to_none=True)
         mse.backward()
-        loss = mse.detach() + self._tv_step()
+        loss = mse.detach() + self._tv_step().float()
         for g, base in zip(self.optimizer.param_groups, self._base_lrs):
             g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
         self.optimizer.step()
@@ -535,9 +555,9 @@ class PlenoxelModel(Model):
             self.n_rays = int(
                 min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch)
             )
-        return {
-            "loss": float(loss.detach()),
-            "psnr": training_psnr(mse.detach()),
+        return {  # tensors where a float would sync: the loop reads them when it logs
+            "loss": loss,
+            "psnr": training_psnr(mse),
             "samples_per_ray": out["samples"] / n_rays,
             "rays": n_rays,
             "voxels": self.grid.num_rows,
@@ -547,7 +567,7 @@ class PlenoxelModel(Model):
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         """Camera 0's image: on the CPU one numba pass per ray (`plenoxel_march.render_lattice`,
         no sample ever stored), elsewhere `render_rays` chunk by chunk; the same pixels."""
-        if self.aabb.device.type != "cpu":
+        if not devices.uses_cpu_kernels(self.aabb):
             return render_image(self._render_chunk, camera, self.cfg.chunk)
         origins, dirs, z_per_t = camera_rays(camera, 0)
         H, W = z_per_t.shape
@@ -664,10 +684,11 @@ class PlenoxelModel(Model):
             "voxels": self.grid.num_rows,
             "resolution": self.res,
             "finest_resolution": self.lattice_sizes()[-1],
-            "occupied_fraction": self.occupancy.occupancy_fraction(),
+            "occupied_fraction": float(self.occupancy.occupancy_fraction()),
         }
 
 
+RAYS_PER_STEP = 12000  # a step of the default sample target (`step_pixels`)
 register(
     MethodSpec(
         name="plenoxel",
@@ -688,10 +709,16 @@ register(
             # 32.56 dB, 0.0127, 2.04 GB, 42 MB
             "lean": {"sh_degree": 1},
         },
-        # about 40k rays/s (adaptive batches up to 16k rays at 2.85 steps/s on lego-200, 2 threads)
+        # about 40k rays/s (adaptive batches up to 16k rays at 2.85 steps/s on lego-200, 2 threads);
+        # the throughput probe's first steps, same machine: 36 ms, between lego-200's 29 ms and
+        # fox's 46 ms (both benchmark scenes, so either sits inside the prior's tolerance)
         starts_from_fields=True,
         resolution=ResolutionPolicy(
-            pixels_per_s=40e3, pixels_per_step=12000, min_epochs=2.0, max_side=800
+            pixels_per_s=40e3,
+            pixels_per_step=RAYS_PER_STEP,
+            min_epochs=2.0,
+            max_side=800,
+            probe_pixels_per_s=330e3,
         ),
     )
 )

@@ -18,8 +18,10 @@ RenderRaysFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]
 
 
 def sample_rays(data: TrainData, n: int, generator: torch.Generator) -> dict[str, Tensor]:
-    """n training rays drawn uniformly with replacement from all pixels (`TrainData.rays_at`)."""
-    return data.rays_at(torch.randint(0, data.num_pixels, (n,), generator=generator))
+    """n training rays drawn uniformly with replacement from all pixels (`TrainData.rays_at`),
+    on the generator's device (the model's: no host copy)."""
+    pixels = torch.randint(0, data.num_pixels, (n,), generator=generator, device=generator.device)
+    return data.rays_at(pixels)
 
 
 @torch.no_grad()
@@ -49,15 +51,20 @@ def scatter_rays(values: Tensor, index: Tensor, n: int, fill: Tensor | None) -> 
     return out.index_copy(0, index, values)
 
 
-def ray_bounds(scene: SceneInfo, origins: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
+def ray_bounds(
+    scene: SceneInfo, origins: Tensor, directions: Tensor, aabb: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """(t_min, t_max) per ray: the scene box clipped to [near, far] for a bounded scene (rays
-    that miss get t_min = t_max, i.e. no samples), [near, far] for an unbounded one."""
+    that miss get t_min = t_max, i.e. no samples), [near, far] for an unbounded one. aabb: the
+    box (2, 3) on the rays' device, a model's buffer (`scene.aabb` lives on the host: a copy a
+    call); None: scene.aabb."""
     R = origins.shape[0]
     near = torch.full((R,), scene.near, device=origins.device, dtype=origins.dtype)
     far = torch.full((R,), scene.far, device=origins.device, dtype=origins.dtype)
     if scene.unbounded:
         return near, far
-    t0, t1, hit = ray_aabb_intersect(origins, directions, scene.aabb.to(origins))
+    box = scene.aabb if aabb is None else aabb
+    t0, t1, hit = ray_aabb_intersect(origins, directions, box.to(origins))
     t0, t1 = torch.maximum(t0, near), torch.minimum(t1, far)
     t1 = torch.where(hit & (t1 > t0), t1, t0)
     return t0, t1

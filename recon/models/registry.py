@@ -50,15 +50,26 @@ def method_spec(name: str) -> MethodSpec:
     return METHODS[name]
 
 
-def pick_device(name: str) -> torch.device:
-    """auto (CUDA when available, else CPU) | cpu | cuda."""
+def choose_device(name: str) -> tuple[torch.device, str]:
+    """The device of `--device NAME` and why it was chosen: auto (CUDA when available, else
+    CPU) | cpu | cuda (an error without a CUDA device). Example: "auto" on a machine with an
+    H200 -> (cuda, "auto: CUDA available: NVIDIA H200"); without CUDA -> (cpu, "auto: no CUDA
+    device")."""
     import torch
 
+    cuda = torch.cuda.is_available()
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
+        if cuda:
+            return torch.device("cuda"), f"auto: CUDA available: {torch.cuda.get_device_name(0)}"
+        return torch.device("cpu"), "auto: no CUDA device"
+    if name == "cuda" and not cuda:
         raise ValueError("--device cuda was asked for but no CUDA device is available")
-    return torch.device(name)
+    return torch.device(name), f"--device {name}"
+
+
+def pick_device(name: str) -> torch.device:
+    """auto (CUDA when available, else CPU) | cpu | cuda (`choose_device`)."""
+    return choose_device(name)[0]
 
 
 def save_model(path: Path, method: str, method_cfg: dict, model: Model) -> Path:

@@ -68,8 +68,9 @@ from recon.models.schedules import (
 from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
-# How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`):
-# with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
+# How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`,
+# schedule_fit "tuned": the fast preset's; "reference" scales the config's own schedules,
+# `schedule_fractions`): with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
 # opacity_reset_interval 560, sh_degree_interval 320.
 # measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
 # until 0.7 of the run with the means lr decayed over the whole run beats the lego-tuned steps
@@ -83,6 +84,8 @@ SCHEDULE_FRACTIONS = {
     "relocate_stop": 0.85,
 }
 
+
+SCHEDULE_FITS = ("reference", "tuned")
 
 _DENSIFY = densify.DensifyStrategy  # the densification defaults have one source: the strategy
 
@@ -169,6 +172,11 @@ class GaussiansConfig:
         0,
         "the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)",
     )
+    schedule_fit: str = opt(
+        "reference",
+        "how step schedules longer than schedule_steps are fitted into it: reference (each scaled by schedule_steps / default_steps: the reference's proportions, densifying until half the run) | tuned (each ended at its share of the run in SCHEDULE_FRACTIONS, measured on CPU runs of a few thousand steps)",
+        choices=SCHEDULE_FITS,
+    )
     c2f_factor: int = opt(
         1, "coarse-to-fine: the first steps fit targets downscaled by this (1 = off)"
     )
@@ -239,6 +247,7 @@ PRESETS = {
         "opacity_reset_interval": 1000,
         "max_gaussians": 200_000,
         "default_steps": 3000,
+        "schedule_fit": "tuned",
         "clone_opacity_correction": True,
         # a lower split/clone threshold than the reference's 0.0002: at 0.0002 the count stops
         # growing long before a CPU run ends (fox: 93 k Gaussians at 10 min, 96 k at 30); with
@@ -274,6 +283,23 @@ PRESETS = {
         "densify_abs_grad": "auto",
     },
 }
+
+
+def schedule_fractions(config: GaussiansConfig) -> dict[str, float]:
+    """How late in a planned run each step schedule may end (`fit_schedules`): schedule_fit
+    "tuned" -> SCHEDULE_FRACTIONS; "reference" -> each schedule's own share of default_steps,
+    so a planned run shorter than that keeps the config's proportions (the paper preset, INRIA's
+    30,000 steps: the means' lr decayed over the whole run, densification until half of it, an
+    opacity reset every tenth, an SH degree more every thirtieth, mcmc relocation until 5/6).
+    Example: the paper preset planned at 12,000 steps -> lr_decay_steps 12,000, densify_stop
+    6,000, opacity_reset_interval 1,200, sh_degree_interval 400, relocate_stop 10,000."""
+    if config.schedule_fit == "tuned":
+        return SCHEDULE_FRACTIONS
+    if config.schedule_fit != "reference":
+        raise ValueError(
+            f"schedule_fit must be one of {', '.join(SCHEDULE_FITS)}, got {config.schedule_fit!r}"
+        )
+    return {name: getattr(config, name) / config.default_steps for name in SCHEDULE_FRACTIONS}
 
 
 def photometric_loss(rgb: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
@@ -440,7 +466,8 @@ class GaussianModel(Model):
 
     def __init__(self, config: GaussiansConfig, scene: SceneInfo):
         super().__init__()
-        self.config = config = fit_schedules(config, SCHEDULE_FRACTIONS)
+        self._fractions = schedule_fractions(config)
+        self.config = config = fit_schedules(config, self._fractions)
         self._planned = config  # as fitted to the planned run (`replan` starts from it)
         self.strategy = densify_strategy(config, bool(scene.unbounded))
         self.register_buffer("background", scene.background.float().clone())
@@ -451,6 +478,7 @@ class GaussianModel(Model):
         self._aabb = scene.aabb.float().clone()
         self._unbounded = bool(scene.unbounded)
         self._min_sh_degree = 0  # a PLY start keeps the SH degrees it already has
+        self._extent: float | None = None  # scene_extent as a float (read once, not every step)
         if config.init_ply:
             if scene.scene_from_world is None:
                 raise ValueError("init_ply needs the scene's scene_from_world similarity")
@@ -571,7 +599,7 @@ class GaussianModel(Model):
             splats = project_splats(
                 self.gaussians(),
                 self._train_camera(level, view, step),
-                int(self.active_sh_degree),
+                self._sh_degree(step),
                 c.near_plane,
                 c.antialiased,
             )
@@ -601,17 +629,15 @@ class GaussianModel(Model):
                 self._prune_by_contribution(data)
                 self._update_filter(data)
         with torch.no_grad():
-            mse = torch.mean((rgb.clamp(0, 1) - target) ** 2).item()
-        return {
-            "loss": loss.item(),
+            mse = torch.mean((rgb.clamp(0, 1) - target) ** 2)
+        return {  # 0-d tensors where a float would sync: the loop reads them when it logs
+            "loss": loss.detach(),
             "psnr": training_psnr(mse),
             "num_gaussians": float(self.num_gaussians),
         }
 
     def replan(self, schedule_steps: int, step: int) -> int:
-        config = refit_schedules(
-            self._planned, self.config, SCHEDULE_FRACTIONS, schedule_steps, step
-        )
+        config = refit_schedules(self._planned, self.config, self._fractions, schedule_steps, step)
         if config == self.config:
             return 0
         self.config = config
@@ -691,19 +717,27 @@ class GaussianModel(Model):
         c = self.config
         if step == 0 and self._random_init and c.init_from_images:
             self._init_from_images(data)
-        if float(self.scene_extent) == 0.0:
+        if self._extent is None:  # first step, or loaded: one read of the buffer
+            self._extent = float(self.scene_extent)
+        if self._extent == 0.0:  # as the float32 buffer holds it, so a resumed run sees the same
             self.scene_extent.fill_(camera_extent(data.cameras))
-        extent = float(self.scene_extent)
+            self._extent = float(self.scene_extent)
+        extent = self._extent
         device = self.params["means"].device
         if self.densify_state["grad2d"].device != device:  # the model was moved after init
             self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
-        scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
-        self.active_sh_degree.fill_(max(scheduled, self._min_sh_degree))
+        self.active_sh_degree.fill_(self._sh_degree(step))
         set_lr(self.optimizer, means_lr(c, step, extent), "means")
         if self.anneal != 1.0:
             for group, lr in scene_lrs(c, step, self.anneal).items():
                 set_lr(self.optimizer, lr, group)
         return extent
+
+    def _sh_degree(self, step: int) -> int:
+        """The SH degree trained at `step`: one more every sh_degree_interval steps."""
+        c = self.config
+        scheduled = min(c.sh_degree, step // max(c.sh_degree_interval, 1))
+        return max(scheduled, self._min_sh_degree)
 
     @torch.no_grad()
     def _init_from_images(self, data: TrainData) -> None:
@@ -847,6 +881,7 @@ class GaussianModel(Model):
         if self.appearance is not None and saved is not None:
             self.appearance.resize(len(saved))
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._extent = None
         self._reset_training_state()
         return result
 
@@ -876,7 +911,10 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
 # wall time is affine in its pixels, 50 ms + 1 us a pixel (a least-squares fit to the four
 # fox-real runs, 76-278 ms a step from 25k to 228k pixels, within 8 %), where the one rate
 # had planned 2,099 steps for a 10-minute run that made 3,642, and 2,758 for 30 minutes that
-# made 6,479: the densification stopped and the lr decayed long before the end.
+# made 6,479: the densification stopped and the lr decayed long before the end. The throughput
+# probe's first steps, same machine: 8.2 ms + 1 / 1.9M s a pixel, fitted to both benchmark
+# scenes (fox's 13.6k sfm Gaussians 6-14 % faster than that, lego-200's 4k random ones 9 %
+# slower), so either sits well inside the prior's tolerance.
 RESOLUTION = ResolutionPolicy(
     pixels_per_s=450e3,
     pixels_per_step=0.0,
@@ -884,6 +922,8 @@ RESOLUTION = ResolutionPolicy(
     max_side=1600,
     step_overhead_s=0.05,
     step_pixels_per_s=1.0e6,
+    probe_overhead_s=0.0082,
+    probe_pixels_per_s=1.9e6,
 )
 SPEC = register(
     MethodSpec(

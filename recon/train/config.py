@@ -12,9 +12,10 @@ from recon.options import opt
 class TrainConfig:
     method: str  # nerf | ngp | plenoxel | 3dgs
     preset: str = opt(
-        "fast",
-        "fast: sized for a CPU; paper: the paper's settings (GPU-sized); a method may have more "
-        "(plenoxel: lean), listed by --list-options",
+        "auto",
+        "auto: paper on a CUDA device, fast elsewhere; fast: sized for a CPU; paper: the "
+        "paper's settings (GPU-sized; its step schedules fitted to a budget's planned steps); a "
+        "method may have more (plenoxel: lean), listed by --list-options",
     )
     steps: int = opt(0, "stop after this many steps (0 = no step limit)")
     time_budget_s: float = opt(
@@ -97,6 +98,23 @@ def apply_overrides(cls, base: dict, overrides: list[str]) -> dict:
         except ValueError as e:
             raise ValueError(f"--set {key}: {e}") from e
     return out
+
+
+AUTO_PRESETS = {"cuda": "paper"}  # device type -> the preset "auto" means there
+CPU_PRESET = "fast"  # what "auto" means elsewhere, and where a method lacks the device's preset
+
+
+def resolve_preset(preset: str, presets: dict, device_type: str) -> tuple[str, str]:
+    """The preset a run uses and why: `preset` itself unless "auto", which is the method's
+    reference settings on a CUDA device (its "paper" preset, sized for a GPU) and the CPU's
+    "fast" one elsewhere. Example: ("auto", 3dgs's presets, "cuda") -> ("paper", "auto: paper
+    on a cuda device"); on "cpu" -> ("fast", "auto: fast on a cpu device")."""
+    if preset != "auto":
+        return preset, f"--preset {preset}"
+    chosen = AUTO_PRESETS.get(device_type, CPU_PRESET)
+    if chosen not in presets:
+        chosen = CPU_PRESET
+    return chosen, f"auto: {chosen} on a {device_type} device"
 
 
 def build_config(cls, presets: dict, preset: str, overrides: list[str]):

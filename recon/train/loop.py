@@ -129,9 +129,12 @@ def run_loop(
 ) -> str:
     """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
 
-    A non-finite loss is never trained on silently: it raises FloatingPointError at once (the
-    optimizer may already have written NaNs into the parameters) and the caller rolls back; so
-    do non-finite parameters found before a checkpoint or at the end.
+    A step's stats may be 0-d tensors on the model's device (`Model.train_step`): they are read
+    (a host sync) only on the steps that are logged, every 10th and the first, and progress
+    shows the last logged values. A non-finite loss is never trained on silently: read there,
+    before a checkpoint and at the end, it raises FloatingPointError (the optimizer may already
+    have written NaNs into the parameters) and the caller rolls back; so do non-finite
+    parameters found before a checkpoint or at the end.
     """
     model.train()
     clock = time.perf_counter()
@@ -150,6 +153,8 @@ def run_loop(
             reason = should_stop(cfg, st)
         return reason
 
+    stats: dict = {}  # the last step's, as train_step returned them
+    logged: dict = {}  # the last logged step's, as Python numbers
     replanner = None
     if cfg.time_budget_s > 0:
         replanner = Replanner.starting_at(cfg.time_budget_s, st.step, st.wall_s, st.elapsed_s)
@@ -166,22 +171,26 @@ def run_loop(
         st.wall_s += time.perf_counter() - t0
         st.step += 1
         tick()
-        if not math.isfinite(stats.get("loss", 0.0)):
-            log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_loss"})
-            raise FloatingPointError(f"the loss became {stats.get('loss')} at step {st.step}")
+        # The loss is read, and checked, only when it is logged: reading it every step would
+        # wait for the device each step. A non-finite loss is then caught up to 9 steps late,
+        # which the rollback to the last checkpoint covers (checkpoints check it first).
         if st.step % 10 == 0 or st.step == 1:
-            log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(stats)})
+            logged = host_stats(stats)
+            require_finite_loss(logged, st, log)
+            log({"step": st.step, "wall_s": round(st.wall_s, 4), **_round(logged)})
         if replanner is not None and (
             projected := replanner.after_step(st.step, st.wall_s, st.elapsed_s, st.eval_cost_s)
         ):
             _replan(model, min(projected, cfg.steps or projected), st, log)
         if progress is not None:
-            report_progress(progress, cfg, st, stats)
+            report_progress(progress, cfg, st, logged)
         if st.wall_s - st.last_ckpt_wall >= cfg.checkpoint_every_s:
+            require_finite_loss(host_stats(stats), st, log)
             require_finite_parameters(model, st, log)
             checkpoint(st)
             st.last_ckpt_wall = st.wall_s
             tick()
+    require_finite_loss(host_stats(stats), st, log)
     require_finite_parameters(model, st, log)
     if held_cams is not None and st.last_psnr_wall < st.wall_s:
         _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted, final=True)
@@ -203,6 +212,19 @@ def _replan(model: Model, projected: int, st: LoopState, log: Callable[[dict], N
                 "schedule_steps": followed,
             }
         )
+
+
+def host_stats(stats: dict) -> dict:
+    """A step's stats with its 0-d tensors read as Python floats (a host sync on a GPU)."""
+    return {k: float(v) if isinstance(v, torch.Tensor) else v for k, v in stats.items()}
+
+
+def require_finite_loss(stats: dict, st: LoopState, log: Callable[[dict], None]) -> None:
+    """Raise FloatingPointError if the step's "loss" (read by `host_stats`) is NaN/Inf."""
+    loss = stats.get("loss", 0.0)
+    if not math.isfinite(loss):
+        log({"step": st.step, "wall_s": st.wall_s, "event": "non_finite_loss"})
+        raise FloatingPointError(f"the loss became {loss} at step {st.step}")
 
 
 def require_finite_parameters(model: Model, st: LoopState, log: Callable[[dict], None]) -> None:

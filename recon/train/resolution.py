@@ -3,12 +3,12 @@ sfm images) chosen from the scene, the method and the budget, or set by the user
 
 A CPU cannot fit a 12-megapixel photo collection in minutes: the training images must be small
 enough that the budget covers enough passes over them. With a time budget T, a method that gets
-through `pixels_per_s` training pixels a second (scaled by threads / 2, the measured setting)
-makes T * pixels_per_s / (C * W_K * H_K) passes ("epochs") over C views of W_K x H_K pixels; a
---steps run makes steps * pixels_per_step of them. The chosen level is the finest one that still
-gives `min_epochs`, never finer than `max_side` on the longer side and never coarser than
-`MIN_SIDE` (INRIA's 3DGS and nerfstudio cap photos at ~1.6k px in the same spirit, with no
-budget in the rule).
+through R training pixels a second (`ResolutionPolicy.pixels_per_s` at the device's measured
+`Speed`, `recon.train.throughput`) makes T * R / (C * W_K * H_K) passes ("epochs") over C views
+of W_K x H_K pixels; a --steps run makes steps * pixels_per_step of them. The chosen level is
+the finest one that still gives `min_epochs`, never finer than `max_side` on the longer side and
+never coarser than `MIN_SIDE` (INRIA's 3DGS and nerfstudio cap photos at ~1.6k px in the same
+spirit, with no budget in the rule).
 """
 
 from __future__ import annotations
@@ -16,14 +16,29 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import asdict, dataclass
 
+import numpy as np
 import torch
 
-from recon.models.base import MethodSpec, ResolutionPolicy
+from recon.models.base import MethodSpec, ResolutionPolicy, TrainData
 from recon.train.config import TrainConfig
-from recon.workspace.scene import Scene, level_size
+from recon.train.throughput import (
+    PROBE_SIDES,
+    PROBE_TRIES,
+    PROBE_VIEWS,
+    REFERENCE,
+    ProbeSample,
+    Speed,
+    fastest,
+    pixels_per_s,
+    prior_speed,
+    run_probe,
+    settled_speed,
+    step_seconds,
+)
+from recon.workspace import Workspace
+from recon.workspace.scene import Scene, level_size, load_images_and_alpha
 
 MIN_SIDE = 128  # the automatic choice never trains on a longer side below this
-MEASURED_THREADS = 2  # the CPU throughputs of ResolutionPolicy were measured at 2 threads
 
 
 @dataclass(frozen=True)
@@ -38,6 +53,12 @@ class WorkingResolution:
         return asdict(self)
 
 
+def policy_step_pixels(width: int, height: int, policy: ResolutionPolicy) -> float:
+    """The pixels a training step takes in the policy's figures: its pixels_per_step, or one
+    whole image (`Model.step_pixels` is what a model says of its own next step)."""
+    return policy.pixels_per_step or width * height
+
+
 def epochs_at(
     width: int,
     height: int,
@@ -45,15 +66,17 @@ def epochs_at(
     policy: ResolutionPolicy,
     time_budget_s: float,
     steps: int,
-    threads: int,
+    speed: Speed = REFERENCE,
 ) -> float | None:
-    """Passes over every training pixel the budget allows at this size. Only the bounds that
-    depend on the size count: a --steps run of a method that trains on one whole image per step
-    makes steps / n_views passes at any size. None: no such bound."""
+    """Passes over every training pixel the budget allows at this size, at the device's
+    `speed` (`throughput.pixels_per_s`). Only the bounds that depend on the size count: a
+    --steps run of a method that trains on one whole image per step makes steps / n_views
+    passes at any size. None: no such bound."""
     pixels = n_views * width * height
     bounds = []
     if time_budget_s > 0:
-        bounds.append(time_budget_s * policy.pixels_per_s * threads / MEASURED_THREADS / pixels)
+        rate = pixels_per_s(policy, policy_step_pixels(width, height, policy), speed)
+        bounds.append(time_budget_s * rate / pixels)
     if steps > 0 and policy.pixels_per_step > 0:
         bounds.append(steps * policy.pixels_per_step / pixels)
     return min(bounds) if bounds else None
@@ -65,22 +88,20 @@ def planned_steps(
     policy: ResolutionPolicy,
     time_budget_s: float,
     steps: int,
-    threads: int,
-    cpu: bool = True,
+    speed: Speed = REFERENCE,
 ) -> int:
     """The steps a run at width x height is expected to make: --steps, or what the time budget
-    buys on a CPU at the policy's step time, the smaller of the two; 0 when nothing bounds the
-    run. A step costs step_overhead_s + P / step_pixels_per_s seconds on 2 threads (P =
-    pixels_per_step, or one image), scaled by 2 / threads. Only an estimate (a 3DGS step slows
-    as Gaussians are added and is faster at the coarse levels): schedules laid out over it need
-    not end exactly at the last step.
-    Example: 600 s of 3dgs at 269 x 478 on 2 threads, 50 ms + 1 us per pixel a step ->
-    600 / (0.05 + 128582 / 1e6) = 3359 steps (the fox-real benchmark made 3,642)."""
+    buys at the policy's step time on the device (`throughput.step_seconds`), the smaller of
+    the two; 0 when nothing bounds the run. Only an estimate (a 3DGS step slows as Gaussians
+    are added and is faster at the coarse levels): schedules laid out over it need not end
+    exactly at the last step, and the loop re-plans them from the step rate it gets
+    (`recon.train.replan`).
+    Example: 600 s of 3dgs at 269 x 478 at the reference speed, 50 ms + 1 us per pixel a step
+    -> 600 / (0.05 + 128582 / 1e6) = 3359 steps (the fox-real benchmark made 3,642)."""
     bounds = [steps] if steps > 0 else []
-    if time_budget_s > 0 and cpu:
-        pixels = policy.pixels_per_step or width * height
-        step_s = policy.step_overhead_s + pixels / (policy.step_pixels_per_s or policy.pixels_per_s)
-        bounds.append(int(time_budget_s * threads / MEASURED_THREADS / step_s))
+    if time_budget_s > 0:
+        step_s = step_seconds(policy, policy_step_pixels(width, height, policy), speed)
+        bounds.append(int(time_budget_s / step_s))
     return min(bounds) if bounds else 0
 
 
@@ -99,24 +120,28 @@ def choose_resolution(
     policy: ResolutionPolicy,
     time_budget_s: float = 0.0,
     steps: int = 0,
-    threads: int = MEASURED_THREADS,
-    cpu: bool = True,
+    speed: Speed = REFERENCE,
     max_side: int = 0,
     downscale: int = 0,
 ) -> WorkingResolution:
     """The working resolution for C = n_views training images of width x height (the sfm size).
 
-    `downscale` / `max_side` (the user's options) override the rule. On a CPU with a time
-    budget: the finest K (coarsest at the `MIN_SIDE` floor) whose `epochs_at` reaches
-    `policy.min_epochs`, capped at `policy.max_side`. Elsewhere (no budget, or a GPU, where
-    the CPU throughput says nothing) the cap alone decides.
-    Example: fox, 58 views of 1076 x 1913, 3dgs (350k px/s, 30 epochs), 600 s on 2 threads ->
-    K = 5 (215 x 382: 44 epochs; K = 4 would give 28).
+    `downscale` / `max_side` (the user's options) override the rule. With a time budget: the
+    finest K (coarsest at the `MIN_SIDE` floor) whose `epochs_at` at the device's `speed`
+    reaches `policy.min_epochs`, capped at `policy.max_side`. Without one the cap alone
+    decides.
+    Example: fox, 58 views of 1076 x 1913, 3dgs (350k px/s, 30 epochs), 600 s at the reference
+    speed -> K = 5 (215 x 382: 44 epochs; K = 4 would give 28).
     """
 
     def result(k: int, source: str, reason: str) -> WorkingResolution:
         w, h = level_size(width, height, k)
         return WorkingResolution(k, w, h, source, reason)
+
+    def epochs(k: int) -> float | None:
+        return epochs_at(
+            *level_size(width, height, k), n_views, policy, time_budget_s, steps, speed
+        )
 
     if downscale:
         return result(downscale, "downscale", f"--downscale {downscale} was given")
@@ -128,24 +153,12 @@ def choose_resolution(
         )
     k_cap = downscale_for_max_side(width, height, policy.max_side)
     cap_note = f"the longer side is capped at {policy.max_side} px"
-    if not cpu or epochs_at(width, height, n_views, policy, time_budget_s, steps, threads) is None:
-        why = (
-            "no budget that depends on the image size"
-            if cpu
-            else "no measured throughput on this device"
-        )
-        return result(k_cap, "auto", f"{why}: {cap_note}")
+    if epochs(k_cap) is None:
+        return result(k_cap, "auto", f"no budget that depends on the image size: {cap_note}")
     k_floor = max(k_cap, downscale_for_max_side(width, height, MIN_SIDE))
     k = k_cap
-    while (
-        k < k_floor
-        and epochs_at(*level_size(width, height, k), n_views, policy, time_budget_s, steps, threads)
-        < policy.min_epochs
-    ):
+    while k < k_floor and epochs(k) < policy.min_epochs:
         k += 1
-    epochs = epochs_at(
-        *level_size(width, height, k), n_views, policy, time_budget_s, steps, threads
-    )
     budget = " and ".join(
         x
         for x in (
@@ -154,21 +167,19 @@ def choose_resolution(
         )
         if x
     )
+    rate = pixels_per_s(policy, policy_step_pixels(*level_size(width, height, k), policy), speed)
     why = (
-        f"{budget} at ~{policy.pixels_per_s * threads / MEASURED_THREADS / 1e3:.0f}k px/s give "
-        f"{epochs:.0f} passes over the {n_views} training views at this size "
-        f"(>= {policy.min_epochs:g} wanted)"
+        f"{budget} at ~{rate / 1e3:.0f}k px/s give {epochs(k):.0f} passes over the {n_views} "
+        f"training views at this size (>= {policy.min_epochs:g} wanted)"
     )
     if k > k_cap:
-        finer = epochs_at(
-            *level_size(width, height, k - 1), n_views, policy, time_budget_s, steps, threads
-        )
+        finer = epochs(k - 1)
         why += (
             f"; 1/{k - 1} would give {finer:.0f}"
             if k > 2
             else f"; full size would give {finer:.0f}"
         )
-    if epochs < policy.min_epochs:
+    if epochs(k) < policy.min_epochs:
         why += f"; not coarser than {MIN_SIDE} px on the longer side"
     elif k == k_cap and k_cap > 1:
         why += f"; {cap_note}"
@@ -177,10 +188,7 @@ def choose_resolution(
 
 # ---- the rule applied to a workspace's scene and a run --------------------------------------
 def working_resolution(
-    scene: Scene,
-    spec: MethodSpec,
-    cfg: TrainConfig,
-    device: torch.device,
+    scene: Scene, spec: MethodSpec, cfg: TrainConfig, speed: Speed
 ) -> WorkingResolution:
     """The pyramid level this run trains at (see `recon.train.resolution`)."""
     width, height = scene.image_size("train")
@@ -191,35 +199,84 @@ def working_resolution(
         spec.resolution,
         cfg.time_budget_s,
         cfg.steps,
-        _threads(cfg),
-        device.type == "cpu",
+        speed,
         cfg.max_side,
         cfg.downscale,
     )
 
 
-def _threads(cfg: TrainConfig) -> int:
-    return cfg.threads or torch.get_num_threads() or MEASURED_THREADS
+def threads(cfg: TrainConfig) -> int:
+    """The run's CPU threads (--threads, or torch's)."""
+    return cfg.threads or torch.get_num_threads() or 1
 
 
-def plan_schedules(
-    method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution, device: torch.device
-):
+def plans_schedules(method_cfg) -> bool:
+    """The method's config has a `schedule_steps` field left at 0 for the run to fill in."""
+    return getattr(method_cfg, "schedule_steps", None) == 0
+
+
+def plan_schedules(method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution, speed):
     """A method whose config has a `schedule_steps` field left at 0 gets the run's planned step
-    count there (`resolution.planned_steps`), to lay its step-based schedules out over the run
-    it will actually have. Returns the (possibly) updated config."""
-    if getattr(method_cfg, "schedule_steps", None) != 0:
+    count there (`resolution.planned_steps` at the device's `speed`), to lay its step-based
+    schedules out over the run it will actually have. Returns the (possibly) updated config."""
+    if not plans_schedules(method_cfg):
         return method_cfg
     plan = planned_steps(
-        res.width,
-        res.height,
-        spec.resolution,
-        cfg.time_budget_s,
-        cfg.steps,
-        _threads(cfg),
-        device.type == "cpu",
+        res.width, res.height, spec.resolution, cfg.time_budget_s, cfg.steps, speed
     )
     return dataclasses.replace(method_cfg, schedule_steps=plan) if plan else method_cfg
+
+
+def probe_levels(width: int, height: int, policy: ResolutionPolicy) -> list[int]:
+    """The pyramid levels the throughput probe trains at, coarse to fine: the coarsest of
+    `PROBE_SIDES` for a method of a fixed pixel batch (a step costs the same at any level), each
+    of them for a method of one whole image a step (two sizes separate a step's fixed and
+    per-pixel costs). Example: 1076 x 1913 -> [15, 8] (71 x 127 and 134 x 239); 200 x 200 ->
+    [2, 1]; ngp -> [15]."""
+    sides = PROBE_SIDES if policy.pixels_per_step <= 0 else PROBE_SIDES[:1]
+    return sorted({downscale_for_max_side(width, height, s) for s in sides}, reverse=True)
+
+
+def needs_speed(cfg: TrainConfig, method_cfg) -> bool:
+    """A new run's level or step plan depends on the device's speed: a time budget, and the
+    level left to the rule or step schedules to plan."""
+    auto_level = not (cfg.downscale or cfg.max_side)
+    return cfg.time_budget_s > 0 and (auto_level or plans_schedules(method_cfg))
+
+
+def measure_speed(
+    ws: Workspace, scene: Scene, spec: MethodSpec, method_cfg, cfg: TrainConfig, device
+) -> tuple[Speed, dict]:
+    """The device's `Speed` for this run, and what was measured (for run.json): the probe
+    (`throughput.run_probe`) of a throw-away model built from the run's config on
+    `PROBE_VIEWS` training views, settled against the prior on a CPU
+    (`throughput.settled_speed`); the prior where nothing depends on it or the method has no
+    reference probe (off a CPU, the reference machine's figures)."""
+    cpu = device.type == "cpu"
+    prior = prior_speed(threads(cfg)) if cpu else REFERENCE
+    policy = spec.resolution
+    if not needs_speed(cfg, method_cfg) or policy.probe_pixels_per_s <= 0:
+        return prior, {"probe": None}
+    idx = scene.split("train")
+    views = [
+        idx[i] for i in sorted(set(np.linspace(0, len(idx) - 1, PROBE_VIEWS).round().astype(int)))
+    ]
+    rgb, alpha = load_images_and_alpha(ws, scene, views, 1)
+    data = TrainData(
+        rgb.to(device),
+        scene.cameras(views, device, 1),
+        None if alpha is None else alpha.to(device),
+    )
+    levels = probe_levels(*scene.image_size("train"), policy)
+    model = spec.build(method_cfg, scene.info).to(device)
+    samples: list[ProbeSample] = []
+    for tries in range(1, PROBE_TRIES + 1):
+        samples = fastest(samples, run_probe(model, data, levels))
+        speed = settled_speed(policy, samples, prior if cpu else None)
+        if speed.source == "prior" or not cpu:  # contention is a CPU's
+            break
+    probe = {"levels": levels, "samples": [asdict(s) for s in samples], "tries": tries}
+    return speed, {"probe": probe}
 
 
 def trained_resolution(run_doc: dict, scene: Scene) -> WorkingResolution:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import random
@@ -17,12 +18,13 @@ import numpy as np
 import torch
 
 from recon.io.ply import read_points_ply
-from recon.models.registry import config_from_json, import_methods, pick_device, save_model
+from recon.models.registry import choose_device, config_from_json, import_methods, save_model
 from recon.train.checkpoint import has_checkpoint, load_latest_checkpoint, save_checkpoint
-from recon.train.config import TrainConfig, build_config
+from recon.train.config import TrainConfig, build_config, resolve_preset
 from recon.train.loop import LoopState, run_loop
 from recon.train.resolution import (
     eval_downscale,
+    measure_speed,
     plan_schedules,
     trained_resolution,
     working_resolution,
@@ -128,16 +130,22 @@ def train(
         )
     spec = methods[cfg.method]
     surface_points_source(ws, cfg, spec)  # refuses `--surface-points on` without mvs, up front
-    if cfg.threads:
-        set_threads(cfg.threads)
-    device = pick_device(cfg.device)
+    # set also at the default count: numba's parallel kernels ran ~1.6x slower until
+    # numba.set_num_threads was called (3dgs steps on 2 cores: 21 against 13 ms), which the
+    # throughput probe would then measure as a slower machine
+    set_threads(cfg.threads or torch.get_num_threads())
+    device, device_reason = choose_device(cfg.device)
+    log_fn(f"device {device.type} ({device_reason})")
+    device_doc = {"device": str(device), "device_reason": device_reason}
     with ws.writer_lock(f"run-{run}"):
         replace = check_run(ws, run, resume, force)
         with ws.replacing_run(run) if replace else contextlib.nullcontext():
-            return _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progress)
+            return _train_checked(
+                ws, run, cfg, spec, overrides, device_doc, resume, log_fn, progress
+            )
 
 
-def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progress) -> dict:
+def _train_checked(ws, run, cfg, spec, overrides, device_doc, resume, log_fn, progress) -> dict:
     if resume:
         saved = json.loads(ws.run_json(run).read_text())
         method_cfg = spec.config_cls(**config_from_json(spec.config_cls, saved["config"]))
@@ -153,9 +161,14 @@ def _train_checked(ws, run, cfg, spec, overrides, device, resume, log_fn, progre
             }
         )
     else:
+        preset, why = resolve_preset(
+            cfg.preset, spec.presets, torch.device(device_doc["device"]).type
+        )
+        log_fn(f"preset {preset} ({why})")
+        cfg = dataclasses.replace(cfg, preset=preset)
         method_cfg = build_config(spec.config_cls, spec.presets, cfg.preset, overrides)
     try:
-        return _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
+        return _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progress)
     except Exception:
         if not resume:
             discard_unresumable_run(ws, run)
@@ -204,15 +217,27 @@ def discard_unresumable_run(ws: Workspace, run: str) -> None:
         shutil.rmtree(ws.run_dir(run), ignore_errors=True)
 
 
-def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress) -> dict:
+def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progress) -> dict:
     started = time.time()
+    device = torch.device(device_doc["device"])
     seed_everything(cfg.seed)
     scene = load_scene(ws)
+    throughput = None
     if resume:  # the level the run started at, whatever budget the resume gives
         res = trained_resolution(json.loads(ws.run_json(run).read_text()), scene)
     else:
-        res = working_resolution(scene, spec, cfg, device)
-        method_cfg = plan_schedules(method_cfg, spec, cfg, res, device)
+        t_probe = time.perf_counter()
+        speed, probe = measure_speed(ws, scene, spec, method_cfg, cfg, device)
+        throughput = {
+            **speed.to_json(),
+            **probe,
+            "probe_s": round(time.perf_counter() - t_probe, 3),
+        }
+        if probe["probe"] is not None:
+            log_fn(f"throughput probe ({throughput['probe_s']:.1f} s): {speed.reason}")
+            seed_everything(cfg.seed)  # the run draws what it would have drawn without the probe
+        res = working_resolution(scene, spec, cfg, speed)
+        method_cfg = plan_schedules(method_cfg, spec, cfg, res, speed)
     sfm_w, sfm_h = scene.image_size("train")
     log_fn(
         f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
@@ -252,6 +277,8 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         "config": asdict(method_cfg),
         "train": asdict(cfg),
         "resolution": resolution,
+        **device_doc,
+        **({"throughput": throughput} if throughput is not None else {}),
         "versions": software_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "status": "running",
@@ -268,7 +295,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         st = LoopState(**ck["loop"])
         torch.set_rng_state(ck["rng"])
         _truncate_log(log_path, st.step)
-        run_doc = {**json.loads(ws.run_json(run).read_text()), "status": "running"}
+        run_doc = {**json.loads(ws.run_json(run).read_text()), **device_doc, "status": "running"}
         log_fn(f"resumed run '{run}' from step {st.step} ({st.wall_s:.0f} s of training)")
     atomic_write_json(ws.run_json(run), run_doc)
     log_file = open(log_path, "a")  # noqa: SIM115 (closed in the finally below)
@@ -401,6 +428,11 @@ def _train_run(ws, run, cfg, spec, method_cfg, device, resume, log_fn, progress)
         "device": str(device),
         "threads": torch.get_num_threads(),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        **(
+            {"peak_gpu_mb": round(torch.cuda.max_memory_allocated(device) / 2**20, 1)}
+            if device.type == "cuda"
+            else {}
+        ),
     }
     atomic_write_json(ws.run_json(run), summary)
     ws.record_stage(

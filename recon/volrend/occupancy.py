@@ -20,10 +20,16 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
+from recon import devices
 from recon.volrend.contraction import scene_to_unit_cube
 from recon.volrend.march_kernels import march_occupied
 from recon.volrend.samplers import uniform
 from recon.volrend.volrend import _TAU_CAP, render_transmittance
+
+# The torch march (`OccupancyGrid.march_torch`, the path off the CPU) lays out at most this many
+# marching intervals at once, ~100 bytes each across its temporaries (~0.4 GB): the rays are
+# marched in rounds of a window of steps instead of all their intervals at once.
+MARCH_ROUND_INTERVALS = 1 << 22
 
 
 def march_intervals(
@@ -45,24 +51,52 @@ def march_intervals(
     t_min, t_max: (R,) (t_max <= t_min means no sample); u: (R,) in [0, 1) start offsets (jitter),
     None for 0. Returns ray_indices (N,) int64, t_starts (N,), t_ends (N,), sorted by ray.
     """
+    s_min, u, counts = _march_counts(t_min, t_max, step, cone_angle, u, disparity_from)
+    ray_indices = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    k = torch.arange(ray_indices.shape[0], device=counts.device) - first[ray_indices]
+    spacing = (step, cone_angle, disparity_from)
+    starts, ends = _interval_edges(ray_indices, k, t_min, t_max, s_min, u, spacing)
+    keep = ends > starts  # ceil() of a rounded count can add one empty interval at the end
+    return ray_indices[keep], starts[keep], ends[keep]
+
+
+def _march_counts(
+    t_min: Tensor,
+    t_max: Tensor,
+    step: float,
+    cone_angle: float,
+    u: Tensor | None,
+    disparity_from: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """(s(t_min) (R,), the offsets u (R,) (0 for None), how many marching intervals (R,) int64
+    each ray has) for `march_intervals`: ceil(s(t_max) - s(t_min) + u), at least 1 on a
+    non-empty range."""
     s_min = _warp(t_min, step, cone_angle, disparity_from)
     s_max = _warp(t_max, step, cone_angle, disparity_from)
     u = torch.zeros_like(s_min) if u is None else u
     counts = torch.ceil((s_max - s_min + u).clamp_min(0.0)).long()
     counts = torch.where(t_max > t_min, counts.clamp_min(1), torch.zeros_like(counts))
-    ray_indices = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts)
-    first = torch.cumsum(counts, 0) - counts
-    k = torch.arange(ray_indices.shape[0], device=counts.device) - first[ray_indices]
+    return s_min, u, counts
+
+
+def _interval_edges(
+    ray_indices: Tensor,
+    k: Tensor,
+    t_min: Tensor,
+    t_max: Tensor,
+    s_min: Tensor,
+    u: Tensor,
+    spacing: tuple[float, float, float],
+) -> tuple[Tensor, Tensor]:
+    """(t_starts, t_ends) (N,) of interval k (N,) int64 of each ray (N,) of `march_intervals`:
+    edges s_min + k - u and s_min + k + 1 - u unwarped, the first starting at t_min and every
+    one ending by t_max. spacing: (step, cone_angle, disparity_from)."""
     k = k.to(s_min.dtype)
     s0, uu = s_min[ray_indices], u[ray_indices]
-    starts = torch.where(
-        k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, step, cone_angle, disparity_from)
-    )
-    ends = torch.minimum(
-        _unwarp(s0 + k + 1.0 - uu, step, cone_angle, disparity_from), t_max[ray_indices]
-    )
-    keep = ends > starts  # ceil() of a rounded count can add one empty interval at the end
-    return ray_indices[keep], starts[keep], ends[keep]
+    starts = torch.where(k == 0, t_min[ray_indices], _unwarp(s0 + k - uu, *spacing))
+    ends = torch.minimum(_unwarp(s0 + k + 1.0 - uu, *spacing), t_max[ray_indices])
+    return starts, ends
 
 
 def marching_distance(
@@ -303,8 +337,8 @@ class OccupancyGrid(nn.Module):
         sigma = torch.cat([density_fn(c) for c in x.split(chunk)])
         alpha = -torch.expm1(-sigma.float().clamp_min(0.0) * step)
         self.opacity[cells] = torch.maximum(self.opacity[cells] * decay, alpha)
-        if not warmup:
-            thr = min(threshold, self.opacity.mean().item())
+        if not warmup:  # min(threshold, mean) as a tensor: no host sync
+            thr = self.opacity.mean().clamp(max=threshold)
             self.occupied.copy_(self.opacity > thr)
 
     def occupied_box(self) -> Tensor | None:
@@ -343,8 +377,10 @@ class OccupancyGrid(nn.Module):
             made = cache[key] = (self.occupied, self.occupied._version, make())
         return made[2]
 
-    def occupancy_fraction(self) -> float:
-        return self.occupied.float().mean().item()
+    def occupancy_fraction(self) -> Tensor:
+        """The share of occupied cells, a 0-d tensor on the grid's device (`float()` reads it:
+        a host sync on a GPU)."""
+        return self.occupied.float().mean()
 
     def march_torch(
         self,
@@ -358,21 +394,50 @@ class OccupancyGrid(nn.Module):
         u: Tensor | None = None,
         max_samples: int = 0,
         disparity_from: float = math.inf,
+        round_intervals: int = MARCH_ROUND_INTERVALS,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """March rays (R,) from t_min to t_max (spacing: `march_intervals`) and keep the intervals whose midpoint, mapped by
-        `to_unit` (world (N, 3) -> unit cube), is in an occupied cell; with max_samples > 0 only
-        the first max_samples of them per ray (front to back: what lies behind is left to the
-        background, as Instant-NGP's fixed maximum of marching steps does).
-        Returns packed ray_indices (N,), t_starts (N,), t_ends (N,)."""
-        ray_indices, starts, ends = march_intervals(
-            t_min, t_max, step, cone_angle, u, disparity_from
-        )
-        mids = 0.5 * (starts + ends)
-        x = origins[ray_indices] + mids[:, None] * directions[ray_indices]
-        keep = self.is_occupied(to_unit(x))
-        ray_indices, starts, ends = ray_indices[keep], starts[keep], ends[keep]
-        keep = first_per_ray(ray_indices, max_samples)
-        return ray_indices[keep], starts[keep], ends[keep]
+        """March rays (R,) from t_min to t_max (spacing: `march_intervals`) and keep the
+        intervals whose midpoint, mapped by `to_unit` (world (N, 3) -> unit cube), is in an
+        occupied cell; with max_samples > 0 only the first max_samples of them per ray (front to
+        back: what lies behind is left to the background, as Instant-NGP's fixed maximum of
+        marching steps does). Returns packed ray_indices (N,), t_starts (N,), t_ends (N,).
+
+        Memory is bounded by construction: the rays still open are marched a window of
+        intervals at a time, at most `round_intervals` of them a round in all, and a ray stops
+        once it holds max_samples; the same samples as one `march_intervals` of everything."""
+        spacing = (step, cone_angle, disparity_from)
+        s_min, u, counts = _march_counts(t_min, t_max, step, cone_angle, u, disparity_from)
+        done, found = torch.zeros_like(counts), torch.zeros_like(counts)  # marched, kept
+        rays = (counts > 0).nonzero()[:, 0]
+        parts = []
+        while rays.numel():
+            n = (counts[rays] - done[rays]).clamp(max=max(1, round_intervals // rays.numel()))
+            local = torch.repeat_interleave(torch.arange(rays.numel(), device=rays.device), n)
+            ri = rays[local]
+            first = torch.cumsum(n, 0) - n
+            k = done[ri] + torch.arange(ri.shape[0], device=ri.device) - first[local]
+            starts, ends = _interval_edges(ri, k, t_min, t_max, s_min, u, spacing)
+            x = origins[ri] + (0.5 * (starts + ends))[:, None] * directions[ri]
+            keep = (ends > starts) & self.is_occupied(to_unit(x))
+            ri, starts, ends = ri[keep], starts[keep], ends[keep]
+            if max_samples > 0:  # the first max_samples of each ray, counting earlier rounds
+                rank = torch.arange(ri.shape[0], device=ri.device) - torch.searchsorted(ri, ri)
+                keep = found[ri] + rank < max_samples
+                ri, starts, ends = ri[keep], starts[keep], ends[keep]
+            parts.append((ri, starts, ends))
+            found += torch.bincount(ri, minlength=counts.shape[0])
+            done[rays] += n
+            more = done[rays] < counts[rays]
+            if max_samples > 0:
+                more &= found[rays] < max_samples
+            rays = rays[more]
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return counts[:0], t_min[:0], t_min[:0]
+        ri, starts, ends = (torch.cat(p) for p in zip(*parts))
+        order = torch.sort(ri, stable=True).indices  # a ray's later rounds follow its earlier
+        return ri[order], starts[order], ends[order]
 
     @torch.no_grad()
     def march(
@@ -392,7 +457,7 @@ class OccupancyGrid(nn.Module):
         """`march_torch` for a scene box mapped by `scene_to_unit_cube(x, aabb, unbounded)`: on CPU the
         numba twin (`march_kernels.march_occupied`, never materialises the dense intervals),
         elsewhere `march_torch`. Same packed (ray_indices, t_starts, t_ends)."""
-        if origins.device.type == "cpu":
+        if devices.uses_cpu_kernels(origins):
             return march_occupied(
                 origins,
                 directions,
