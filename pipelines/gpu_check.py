@@ -195,14 +195,20 @@ def psnr_at(psnrs: list[tuple[float, float]], wall_s: float) -> dict | None:
 
 
 def train_and_eval(
-    ws: Path, method: str, budget: float, eval_max_side: int, downscale: int, device: str
+    ws: Path,
+    method: str,
+    budget: float,
+    eval_max_side: int,
+    downscale: int,
+    device: str,
+    preset: str = "auto",
 ) -> dict:
-    run = f"{method}-{budget:g}s"
+    run = f"{method}-{'' if preset == 'auto' else preset + '-'}{budget:g}s"
     t0 = time.perf_counter()
     recon(
         "train", "-w", str(ws), "--method", method, "--run", run, "--device", device,
         "--time-budget", f"{budget:g}", "--eval-every", f"{EVAL_EVERY_S:g}",
-        "--eval-views", "25", "--eval-max-side", str(eval_max_side), "--threads", "2",
+        "--eval-views", "25", "--eval-max-side", str(eval_max_side), "--threads", "2", "--preset", preset,
     )  # fmt: skip
     train_s = time.perf_counter() - t0
     ev = recon("eval", "-w", str(ws), "--run", run, "--downscale", str(downscale))
@@ -213,6 +219,7 @@ def train_and_eval(
     return {
         "scene": ws.name,
         "method": method,
+        "preset": doc.get("preset"),
         "budget_s": budget,
         "train_command_s": round(train_s, 1),
         "steps": steps,
@@ -287,6 +294,9 @@ def main() -> int:
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--serial", action="store_true", help="one run at a time (exclusive timings)")
     ap.add_argument(
+        "--also-presets", default="", help="3dgs runs on fox with these presets too (e.g. fast)"
+    )
+    ap.add_argument(
         "--tests", action="store_true", help="also run tests/test_cuda.py (beside the 3dgs runs)"
     )
     ap.add_argument(
@@ -344,7 +354,7 @@ def main() -> int:
         return done
 
     result["concurrent_runs"] = not args.serial
-    with ThreadPoolExecutor(max_workers=1 if args.serial else 8) as pool:
+    with ThreadPoolExecutor(max_workers=1 if args.serial else 12) as pool:
         gsplat = "3dgs" in methods and args.device == "cuda"
         compiling = pool.submit(compile_gsplat, info["capability"]) if gsplat else None
         lego, fox = WORK / "lego", WORK / "fox"
@@ -369,11 +379,11 @@ def main() -> int:
         if "3dgs" in methods and gsplat_ok:
             fox_import.result()
             log("fox imported")
-            for ws, budget, side, k in (
-                (fox, args.fox_budget, 480, 4),
-                (lego, args.budget, 800, 1),
-            ):
-                jobs.append(pool.submit(record, train_and_eval, ws, "3dgs", budget, side, k, dev))
+            scenes = ((fox, args.fox_budget, 480, 4), (lego, args.budget, 800, 1))
+            for preset in ("auto", *args.also_presets.split(",")):
+                for ws, budget, side, k in scenes[: 2 if preset == "auto" else 1] if preset else ():
+                    job = (train_and_eval, ws, "3dgs", budget, side, k, dev, preset)
+                    jobs.append(pool.submit(record, *job))
         elif "3dgs" in methods:
             result["errors"].append("gsplat did not compile: " + result["gsplat_compile"]["error"])
         if args.tests and dev == "cuda":

@@ -97,7 +97,7 @@ def gauge_basis(cam_from_world: Tensor, pivots: Tensor) -> Tensor:
     shared = torch.eye(6, dtype=torch.float64).repeat(C, 1)  # (6C, 6)
     world = se3_adjoint(P @ cam_from_world.double().cpu()).reshape(6 * C, 6)
     U, S, _ = torch.linalg.svd(torch.cat([shared, world], 1), full_matrices=False)
-    return U[:, S > 1e-9 * S[0]]
+    return U[:, S > 1e-9 * S[0]].to(cam_from_world.device)  # an SVD this small: on the CPU
 
 
 def outlier_ratios(mean_grads: Tensor, gauge: Tensor) -> Tensor:
