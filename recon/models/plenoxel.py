@@ -659,7 +659,9 @@ class PlenoxelModel(Model):
         state = dict(state)
         state.setdefault("finest", torch.zeros((), dtype=torch.long))  # saved before it existed
         coords, values, res = self._unpack_file_state(state)
-        self.grid.set_rows(coords, values, res)
+        device = self.grid.links.device  # a checkpoint is read onto the CPU: keep the model's
+        values = {name: v.to(device) for name, v in values.items()}
+        self.grid.set_rows(coords.to(device), values, res)
         self._density_changed()
         state.update({"grid.coords": self.grid.coords, "grid.links": self.grid.links})
         state.update({f"grid.data.{n}": v for n, v in values.items()})

@@ -50,6 +50,12 @@ PROBE_MAX_S = 1.5  # ... or this many seconds of them (at least 2 steps)
 # 3dgs probe steps of 12 ms took 230 ms for seconds), and a level chosen on that would hold
 # for the whole run
 PROBE_TRIES = 2
+# A device with no prior (a GPU): its run's average step over its probe's fastest. A GPU step is
+# bound by kernel launches and Python, which do not grow with the model the way a CPU's
+# rasterizer does (H200, 3dgs on lego at 100 px: probe steps of 5.7-7.2 ms, the run's 6,179
+# steps 8.7 ms on average); a step plan too long is shortened by the replanner, one too short
+# is not (its schedules would end early), so the margin errs long.
+DEVICE_RUN_MARGIN = 1.5
 
 
 @dataclass(frozen=True)
@@ -149,6 +155,31 @@ def measured_speed(policy: ResolutionPolicy, samples: list[ProbeSample]) -> Spee
     return Speed(_clamped(s_o), _clamped(s_p), "measured", how)
 
 
+def device_speed(
+    policy: ResolutionPolicy, samples: list[ProbeSample], margin: float = DEVICE_RUN_MARGIN
+) -> Speed:
+    """The speed of a device with no prior (a GPU): its probe's own step times, `margin` times
+    longer, are the run's steps, expressed against the policy's run-level step model
+    (`step_seconds`) rather than against the reference probe (a CPU run's steps are several
+    times its probe's, a GPU's are not: `DEVICE_RUN_MARGIN`). Two sizes or more: the fitted
+    fixed and per-pixel costs apart (`fit_step_time`); one: one factor.
+    Example: 3dgs (50 ms + P / 1M px/s a step), probe steps of 7.2 ms at 10k px and 5.7 ms at
+    40k px (H200, lego) -> 6.45 ms + 0 a pixel -> fixed cost 0.05 / (1.5 x 0.00645) = 5.17x,
+    per-pixel MAX_SPEEDUP: a run's step 9.7 ms at any size."""
+    sizes = {s.pixels for s in samples}
+    rate = policy.step_pixels_per_s or policy.pixels_per_s
+    if len(sizes) >= 2 and policy.step_overhead_s > 0:
+        overhead, per_pixel = fit_step_time(samples)
+        s_o = policy.step_overhead_s / (margin * overhead) if overhead > 0 else MAX_SPEEDUP
+        s_p = 1 / (rate * margin * per_pixel) if per_pixel > 0 else MAX_SPEEDUP
+        how = f"fixed and per-pixel costs fitted, x{margin:g} for a whole run"
+    else:
+        ratios = [step_seconds(policy, s.pixels) / (margin * s.step_s) for s in samples]
+        s_o = s_p = statistics.geometric_mean(ratios)
+        how = f"one factor, x{margin:g} for a whole run"
+    return Speed(_clamped(s_o), _clamped(s_p), "measured", how)
+
+
 def settled_speed(
     policy: ResolutionPolicy,
     samples: list[ProbeSample],
@@ -158,7 +189,8 @@ def settled_speed(
     """The speed the run uses: the prior (one factor for both costs, `prior_speed`) while every
     probe step took within a factor `tolerance` of what the prior predicts for it (the reference
     probe's time over the prior speed), else the measured speed (`PRIOR_TOLERANCE` says why).
-    No prior (a GPU, whose speed a CPU's threads do not tell): the measured speed. Example:
+    No prior (a GPU, whose speed a CPU's threads do not tell): the probe's steps are the run's
+    (`device_speed`). Example:
     prior 1x, probe steps 10 % slower than the reference's -> the prior; 2x faster -> measured."""
     note = "steps of " + ", ".join(
         f"{s.pixels / 1e3:.1f}k px in {s.step_s * 1e3:.1f} ms ({s.pixels / s.step_s / 1e3:.0f}k px/s)"
@@ -178,7 +210,7 @@ def settled_speed(
                 prior.source,
                 f"{note}, within {tolerance:g}x: the prior stands, {prior.reason}",
             )
-    speed = measured_speed(policy, samples)
+    speed = measured_speed(policy, samples) if prior is not None else device_speed(policy, samples)
     return Speed(
         speed.overhead,
         speed.pixels,
