@@ -102,6 +102,25 @@ def attempt_ladder(config: SfmConfig, num_images: int) -> list[AttemptOptions]:
     return [first, second, third]
 
 
+# The initial pair's parallax when no pair had COLMAP's 16 degrees: a forward-facing capture
+# (LLFF's, a phone swept across a scene) has a few degrees between any two photos (llff_flower:
+# no initial pair at 16 degrees in three attempts; every photo registered at 4)
+LOW_PARALLAX_INIT_ANGLE = 4.0
+
+
+def low_parallax(options: AttemptOptions) -> AttemptOptions | None:
+    """The same attempt with the initial pair's parallax lowered to LOW_PARALLAX_INIT_ANGLE,
+    or None when it already is that low. Its features and matches are the failed attempt's:
+    only the mapper runs again."""
+    if options.init_min_tri_angle <= LOW_PARALLAX_INIT_ANGLE:
+        return None
+    return replace(
+        options,
+        name=f"{options.name}, low-parallax initial pair",
+        init_min_tri_angle=LOW_PARALLAX_INIT_ANGLE,
+    )
+
+
 def camera_groups(photos: PhotoSet, single_camera: bool) -> list[tuple[list[str], int]]:
     """(names, longer side px) of the images sharing one camera: all photos of one size when
     `single_camera`, else one group per photo."""
@@ -208,12 +227,21 @@ def run_ladder(
     """Run attempts until one registers every photo or the ladder ends."""
     groups = camera_groups(photos, config.single_camera)
     attempts: list[Attempt] = []
-    for index, options in enumerate(attempt_ladder(config, len(photos.photos)), start=1):
+    ladder = attempt_ladder(config, len(photos.photos))
+    while ladder:
+        options = ladder.pop(0)
         previous = attempts[-1] if attempts else None
+        index = len(attempts) + 1
         attempt = run_attempt(options, index, photos, groups, work_dir, config, previous, progress)
         attempts.append(attempt)
         if attempt.registered == len(photos.photos):
             break
+        if attempt.registered < min(3, len(photos.photos)) and (lower := low_parallax(options)):
+            # no model at all: first the same matches with less parallax for the initial
+            # pair, then the ladder (which keeps the lower angle)
+            ladder = [lower] + [
+                replace(o, init_min_tri_angle=lower.init_min_tri_angle) for o in ladder
+            ]
     return attempts
 
 

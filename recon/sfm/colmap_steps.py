@@ -44,6 +44,7 @@ class AttemptOptions:
     init_min_num_inliers: int  # mapper: inliers the initial pair needs
     abs_pose_min_num_inliers: int  # mapper: 2D-3D inliers to register a new image
     abs_pose_min_inlier_ratio: float  # mapper: inlier ratio to register a new image
+    init_min_tri_angle: float = 16.0  # mapper: degrees of parallax the initial pair needs
 
 
 @contextlib.contextmanager
@@ -205,6 +206,7 @@ def incremental_options(
     pipeline.mapper.init_min_num_inliers = options.init_min_num_inliers
     pipeline.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
     pipeline.mapper.abs_pose_min_inlier_ratio = options.abs_pose_min_inlier_ratio
+    pipeline.mapper.init_min_tri_angle = options.init_min_tri_angle
     # Small captures are still worth a model: COLMAP's default refuses models under 10 images.
     pipeline.min_model_size = min(10, max(2, len(names) // 2))
     return pipeline
