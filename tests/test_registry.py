@@ -77,3 +77,29 @@ def test_choose_device_says_why(monkeypatch):
     assert pick_device("auto") == torch.device("cpu")
     with pytest.raises(ValueError, match="no CUDA device is available"):
         choose_device("cuda")
+
+
+def test_a_method_missing_its_cuda_package_trains_on_the_cpu_under_auto(monkeypatch):
+    """3dgs without gsplat on a CUDA machine: auto takes the CPU and says why, --device cuda is
+    a one-line error naming what to install; the other methods need nothing more."""
+    import importlib.util
+
+    from recon.gaussians import gsplat_glue
+    from recon.models.registry import choose_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda i=0: "NVIDIA H200")
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "gsplat" else find_spec(name)
+    )
+    specs = import_methods()
+    missing = specs["3dgs"].cuda_missing()
+    assert missing == gsplat_glue.cuda_missing() and "recon[cuda]" in missing
+    assert all(specs[m].cuda_missing is None for m in ("nerf", "ngp", "plenoxel", "sdf"))
+    device, why = choose_device("auto", missing)
+    assert device == torch.device("cpu") and "needs gsplat" in why
+    with pytest.raises(ValueError, match="needs gsplat"):
+        choose_device("cuda", missing)
+    monkeypatch.setattr(importlib.util, "find_spec", find_spec)
+    assert specs["3dgs"].cuda_missing() is None  # installed here (the test extra)

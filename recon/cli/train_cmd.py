@@ -9,7 +9,7 @@ import click
 
 from recon.cli.common import emit_json, json_option, workspace_option
 from recon.cli.progress import Progress
-from recon.models.registry import METHOD_NAMES, method_spec, pick_device
+from recon.models.registry import METHOD_NAMES, choose_device, method_spec
 from recon.options import config_option, field_help, from_options
 from recon.train.config import TrainConfig, resolve_preset
 from recon.train.stage import train
@@ -143,7 +143,9 @@ def command(
         run = run or f"{bake_from}-baked"
         if run == bake_from:
             raise click.UsageError("--bake-from RUN writes a new run: give another --run")
-    device = pick_device(options["device"])  # --device cuda without one: an error, up front
+    # --device cuda without one, or without what the method needs there: an error, up front
+    missing = spec.cuda_missing() if spec.cuda_missing else None
+    device, _ = choose_device(options["device"], missing)
     if not (options["steps"] or options["time_budget_s"] or options["patience"]):
         preset, _ = resolve_preset(options["preset"], spec.presets, device.type)
         method_cfg = spec.config_cls(**spec.presets.get(preset, {}))

@@ -28,6 +28,7 @@ packed mode saves memory only when many cameras see a small part of the scene ea
 
 from __future__ import annotations
 
+import importlib.util
 from types import SimpleNamespace
 
 import torch
@@ -36,6 +37,13 @@ from torch import Tensor
 from recon.gaussians.projection import DILATION
 
 TILE = 16  # gsplat's tile side (its kernels are tuned for 16 x 16 thread blocks)
+
+
+def cuda_missing() -> str | None:
+    """What 3dgs lacks on a CUDA device: gsplat, if it is not installed (None if it is)."""
+    if importlib.util.find_spec("gsplat") is None:
+        return "gsplat (pip install 'recon[cuda]')"
+    return None
 
 
 def _gsplat_ops() -> SimpleNamespace:
@@ -50,7 +58,7 @@ def _gsplat_ops() -> SimpleNamespace:
         )
     except ImportError as e:
         raise RuntimeError(
-            "3dgs on a CUDA device needs gsplat: pip install 'recon[cuda]' (or train with "
+            "3dgs on a CUDA device needs gsplat: pip install 'recon[cuda]' (or pass "
             f"--device cpu) [{e}]"
         ) from None
     return SimpleNamespace(

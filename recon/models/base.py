@@ -285,6 +285,8 @@ class MethodSpec:
     starts_from_splats: bool = False  # its config takes `init_ply`: a splat PLY to start from
     starts_from_fields: bool = False  # its config takes `bake_from`: a model with `radiance`
     uses_surface_points: bool = False  # its training uses `TrainData.surface_points`
+    # what it lacks to run on a CUDA device (a package to install), or None: () -> str | None
+    cuda_missing: Callable | None = None
 
 
 METHODS: dict[str, MethodSpec] = {}

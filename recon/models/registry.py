@@ -50,20 +50,27 @@ def method_spec(name: str) -> MethodSpec:
     return METHODS[name]
 
 
-def choose_device(name: str) -> tuple[torch.device, str]:
+def choose_device(name: str, cuda_missing: str | None = None) -> tuple[torch.device, str]:
     """The device of `--device NAME` and why it was chosen: auto (CUDA when available, else
-    CPU) | cpu | cuda (an error without a CUDA device). Example: "auto" on a machine with an
-    H200 -> (cuda, "auto: CUDA available: NVIDIA H200"); without CUDA -> (cpu, "auto: no CUDA
-    device")."""
+    CPU) | cpu | cuda (an error without a CUDA device). `cuda_missing`: what the method lacks
+    on CUDA (`MethodSpec.cuda_missing`), which sends auto to the CPU and makes cuda an error.
+    Example: "auto" on a machine with an H200 -> (cuda, "auto: CUDA available: NVIDIA H200");
+    without CUDA -> (cpu, "auto: no CUDA device")."""
     import torch
 
     cuda = torch.cuda.is_available()
     if name == "auto":
+        if cuda and cuda_missing:
+            return torch.device(
+                "cpu"
+            ), f"auto: CUDA available, but this method needs {cuda_missing} there"
         if cuda:
             return torch.device("cuda"), f"auto: CUDA available: {torch.cuda.get_device_name(0)}"
         return torch.device("cpu"), "auto: no CUDA device"
     if name == "cuda" and not cuda:
         raise ValueError("--device cuda was asked for but no CUDA device is available")
+    if name == "cuda" and cuda_missing:
+        raise ValueError(f"--device cuda: this method needs {cuda_missing} on CUDA")
     return torch.device(name), f"--device {name}"
 
 

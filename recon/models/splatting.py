@@ -34,7 +34,7 @@ from torch.profiler import record_function
 
 from recon.cameras import Cameras
 from recon.cameras.pose_refine import PoseCorrection
-from recon.gaussians import densify, mcmc
+from recon.gaussians import densify, gsplat_glue, mcmc
 from recon.gaussians.coarse_to_fine import c2f_factor
 from recon.gaussians.contribution import contributions, least_contributing
 from recon.gaussians.init import (
@@ -933,5 +933,6 @@ SPEC = register(
         presets=PRESETS,
         resolution=RESOLUTION,
         starts_from_splats=True,
+        cuda_missing=gsplat_glue.cuda_missing,
     )
 )

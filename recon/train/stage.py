@@ -134,7 +134,9 @@ def train(
     # numba.set_num_threads was called (3dgs steps on 2 cores: 21 against 13 ms), which the
     # throughput probe would then measure as a slower machine
     set_threads(cfg.threads or torch.get_num_threads())
-    device, device_reason = choose_device(cfg.device)
+    device, device_reason = choose_device(
+        cfg.device, spec.cuda_missing() if spec.cuda_missing else None
+    )
     log_fn(f"device {device.type} ({device_reason})")
     device_doc = {"device": str(device), "device_reason": device_reason}
     with ws.writer_lock(f"run-{run}"):
