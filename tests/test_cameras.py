@@ -20,7 +20,7 @@ def K_problem1():
     )
 
 
-def test_seed_problem1_projection_exact():
+def test_pinhole_projection_worked_example_exact():
     K = K_problem1()
     uv4, z4 = project_points(torch.tensor([0.5, -0.3, 4.0], dtype=torch.float64), K)
     uv8, _ = project_points(torch.tensor([0.5, -0.3, 8.0], dtype=torch.float64), K)

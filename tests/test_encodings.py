@@ -7,7 +7,7 @@ import torch
 from recon.fields.encodings import positional_encoding, positional_encoding_dim
 
 
-def test_seed_problem2_dimensions():
+def test_positional_encoding_dimensions():
     x = torch.rand(5, 3) * 2 - 1
     assert positional_encoding(x, 10).shape == (5, 63)
     assert positional_encoding(x, 10, include_input=False).shape == (5, 60)

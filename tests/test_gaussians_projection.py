@@ -26,7 +26,7 @@ F64 = torch.float64
 
 
 def problem5():
-    """Seed Problem 5: camera-space mean (0.4, -0.2, 2), scales (0.1, 0.05, 0.2), 30 deg about
+    """A worked EWA example (Zwicker et al. 2001; Kerbl et al. 2023, eq. 5): camera-space mean (0.4, -0.2, 2), scales (0.1, 0.05, 0.2), 30 deg about
     z, fx = fy = 1111; a 2000 x 2000 image centred on the axis so the guard band is inactive."""
     half = math.radians(30.0) / 2
     quat = torch.tensor([[math.cos(half), 0.0, 0.0, math.sin(half)]], dtype=F64)

@@ -17,7 +17,7 @@ from recon.fields.hashgrid import (
 )
 
 
-def test_seed_problem4_layout_and_parameter_count():
+def test_hashgrid_layout_and_parameter_count_worked_example():
     assert growth_factor(16, 16, 2048) == pytest.approx(1.3819, abs=1e-4)
     lay = level_layout(16, 16, 2048, 2**19)
     assert lay["resolution"] == [

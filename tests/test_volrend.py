@@ -23,7 +23,7 @@ def worked_example():
     return sigma, color, starts, starts + 0.5
 
 
-def test_seed_problem3_worked_numbers():
+def test_volume_render_worked_numbers():
     sigma, color, t0, t1 = worked_example()
     out = volume_render(sigma, color, t0, t1)
     assert out.rgb[0, 0].item() == pytest.approx(0.661566, abs=1e-6)
@@ -35,7 +35,7 @@ def test_seed_problem3_worked_numbers():
     assert out.transmittance[0].tolist() == pytest.approx(expected_T, abs=1e-6)
 
 
-def test_seed_problem3_float32_and_background():
+def test_volume_render_float32_and_background():
     sigma, color, t0, t1 = (x.float() for x in worked_example())
     bg = torch.tensor([0.0, 1.0, 0.5])
     out = volume_render(sigma, color, t0, t1, background=bg)

@@ -11,7 +11,8 @@ def positional_encoding(x: Tensor, num_bands: int = 10, include_input: bool = Tr
     coordinate, b_j = 2^j pi, the identity first, then sin/cos per frequency: x (..., D) -> (..., D + 2 D L).
 
     The raw input comes first, then for each coordinate its L sines followed by its L cosines.
-    Seed Problem 2: L = 10 in 3D gives 3 + 3 * 2 * 10 = 63 dims; L = 4 directions give 27.
+    Mildenhall et al. 2020 (NeRF), Sec. 5.1, eq. 4: L = 10 in 3D gives 3 + 3 * 2 * 10 = 63 dims;
+    L = 4 for directions gives 27.
     """
     freqs = (2.0 ** torch.arange(num_bands, device=x.device, dtype=x.dtype)) * torch.pi  # (L,)
     xb = x[..., None] * freqs  # (..., D, L)

@@ -38,7 +38,7 @@ from recon.models.plenoxel_march import (
     render_lattice,
     vertex_logits,
 )
-from recon.models.raymarch import render_image, sample_rays
+from recon.models.raymarch import batch_pixels, render_image, sample_rays
 from recon.models.registry import load_model
 from recon.models.schedules import exp_decay_lr
 from recon.options import opt
@@ -523,13 +523,10 @@ class PlenoxelModel(Model):
         self.occupancy.update(self._sigma_unit, cell, warmup=warmup, generator=self.generator)
 
     def step_pixels(self, data: TrainData) -> int:
-        """With a sample target: RAYS_PER_STEP scaled by it (a target 4x the default's fits
-        ~4x the rays a step, whatever the scene's samples a ray); else the fixed batch."""
-        if self.cfg.samples_per_batch > 0:
-            return round(
-                RAYS_PER_STEP * self.cfg.samples_per_batch / PlenoxelConfig.samples_per_batch
-            )
-        return self.n_rays
+        c = self.cfg
+        return batch_pixels(
+            c.samples_per_batch, PlenoxelConfig.samples_per_batch, RAYS_PER_STEP, self.n_rays
+        )
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
         if step == 0 and self.cfg.bake_from:

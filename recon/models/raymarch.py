@@ -132,3 +132,15 @@ class _TruncExp(torch.autograd.Function):
 def trunc_exp(x: Tensor) -> Tensor:
     """sigma = exp(x) with the gradient clamped at x = 15 (see `_TruncExp`)."""
     return _TruncExp.apply(x)
+
+
+def batch_pixels(
+    samples_per_batch: int, default_samples: int, default_rays: int, n_rays: int
+) -> int:
+    """The rays a training step of a sample-targeted batch fits (`Model.step_pixels`): with a
+    sample target, `default_rays` (what the default target `default_samples` fits) scaled by
+    the target, whatever the scene's samples a ray; without one, the fixed batch `n_rays`.
+    Example: a target 4x the default's that fits 2,500 rays -> 10,000."""
+    if samples_per_batch > 0:
+        return round(default_rays * samples_per_batch / default_samples)
+    return n_rays

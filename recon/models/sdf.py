@@ -67,7 +67,14 @@ from recon.models.base import (
     register,
     training_targets,
 )
-from recon.models.raymarch import mlp, points_in_box, ray_bounds, render_image, sample_rays
+from recon.models.raymarch import (
+    batch_pixels,
+    mlp,
+    points_in_box,
+    ray_bounds,
+    render_image,
+    sample_rays,
+)
 from recon.models.schedules import (
     exp_decay_lr,
     fit_schedules,
@@ -393,11 +400,10 @@ class SDFModel(Model):
         return cfg.schedule_steps
 
     def step_pixels(self, data: TrainData) -> int:
-        """With a sample target: RAYS_PER_STEP scaled by it (a target 4x the default's fits
-        ~4x the rays a step, whatever the scene's samples a ray); else the fixed batch."""
-        if self.cfg.samples_per_batch > 0:
-            return round(RAYS_PER_STEP * self.cfg.samples_per_batch / SDFConfig.samples_per_batch)
-        return self.n_rays
+        c = self.cfg
+        return batch_pixels(
+            c.samples_per_batch, SDFConfig.samples_per_batch, RAYS_PER_STEP, self.n_rays
+        )
 
     def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
         cfg = self.cfg

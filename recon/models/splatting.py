@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 from torch.profiler import record_function
 
+from recon import devices
 from recon.cameras import Cameras
 from recon.cameras.pose_refine import PoseCorrection
 from recon.gaussians import densify, gsplat_glue, mcmc
@@ -478,7 +479,6 @@ class GaussianModel(Model):
         self._aabb = scene.aabb.float().clone()
         self._unbounded = bool(scene.unbounded)
         self._min_sh_degree = 0  # a PLY start keeps the SH degrees it already has
-        self._extent: float | None = None  # scene_extent as a float (read once, not every step)
         if config.init_ply:
             if scene.scene_from_world is None:
                 raise ValueError("init_ply needs the scene's scene_from_world similarity")
@@ -717,12 +717,11 @@ class GaussianModel(Model):
         c = self.config
         if step == 0 and self._random_init and c.init_from_images:
             self._init_from_images(data)
-        if self._extent is None:  # first step, or loaded: one read of the buffer
-            self._extent = float(self.scene_extent)
-        if self._extent == 0.0:  # as the float32 buffer holds it, so a resumed run sees the same
+        # the float32 buffer's value, read from the device once (and again after a load), so a
+        # resumed run sees the same extent
+        if devices.host_value(self, "extent", self.scene_extent, float) == 0.0:
             self.scene_extent.fill_(camera_extent(data.cameras))
-            self._extent = float(self.scene_extent)
-        extent = self._extent
+        extent = devices.host_value(self, "extent", self.scene_extent, float)
         device = self.params["means"].device
         if self.densify_state["grad2d"].device != device:  # the model was moved after init
             self.densify_state = {k: v.to(device) for k, v in self.densify_state.items()}
@@ -881,7 +880,6 @@ class GaussianModel(Model):
         if self.appearance is not None and saved is not None:
             self.appearance.resize(len(saved))
         result = super().load_state_dict(state_dict, strict=strict, assign=assign)
-        self._extent = None
         self._reset_training_state()
         return result
 
