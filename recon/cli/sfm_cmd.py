@@ -14,7 +14,7 @@ from recon.cli.progress import Progress
 from recon.options import config_field, config_option, field_help, from_options
 from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.scene_writer import SceneConfig
-from recon.sfm.sources import SourceError, read_colmap, read_transforms
+from recon.sfm.sources import SourceError, read_colmap, read_llff, read_transforms
 from recon.sfm.stage import write_sfm_stage
 from recon.workspace import Workspace
 from recon.workspace.registration import partial_warning
@@ -110,10 +110,18 @@ def _summary_line(report: dict, root: Path) -> str:
     help="Known poses: a COLMAP sparse model folder (text or binary).",
 )
 @click.option(
+    "--from-llff",
+    "llff_dir",
+    type=click.Path(path_type=Path),
+    help="Known poses: an LLFF capture (poses_bounds.npy, as the LLFF and Mip-NeRF 360 "
+    "releases; every 8th photo held out).",
+)
+@click.option(
     "--images",
     "colmap_images",
     type=click.Path(path_type=Path),
-    help="With --from-colmap: the images folder (default: next to the model).",
+    help="With --from-colmap: the images folder (default: next to the model); with "
+    "--from-llff: the photos (default: images, images_2, images_4 or images_8 beside it).",
 )
 @config_option(SceneConfig, "downscale", type=click.IntRange(1, 64))
 @config_option(SceneConfig, "background")
@@ -149,6 +157,7 @@ def sfm(
     workspace,
     transforms,
     colmap_dir,
+    llff_dir,
     colmap_images,
     frames,
     fps,
@@ -164,13 +173,18 @@ def sfm(
     recon sfm VIDEO|FOLDER -w WS [--frames N]   ... on frames of a video (or of a folder's videos)
     recon sfm --from-transforms F|DIR -w WS     known poses (transforms*.json)
     recon sfm --from-colmap MODEL -w WS         known poses (COLMAP model)
+    recon sfm --from-llff DIR -w WS             known poses (LLFF poses_bounds.npy)
 
     Exit codes: 0 done, 1 error (the workspace is left as it was), 2 bad usage, 3 fewer than
     --min-registered of the photos registered (the model is written; --allow-partial: 0).
     """
-    sources = [x for x in (images, transforms, colmap_dir) if x is not None]
+    sources = [x for x in (images, transforms, colmap_dir, llff_dir) if x is not None]
     if len(sources) != 1:
-        raise click.UsageError("give exactly one of IMAGES, --from-transforms, --from-colmap")
+        raise click.UsageError(
+            "give exactly one of IMAGES, --from-transforms, --from-colmap, --from-llff"
+        )
+    if colmap_images is not None and colmap_dir is None and llff_dir is None:
+        raise click.UsageError("--images goes with --from-colmap or --from-llff")
     cfg = from_options(SceneConfig, options)
     holdout_every = cfg.holdout_every
     root = Path(workspace)
@@ -192,6 +206,10 @@ def sfm(
                 posed = read_transforms(transforms, holdout_every)
                 inputs = {"source": transforms}
                 record = {"source": "transforms", "path": str(transforms)}
+            elif llff_dir is not None:
+                posed = read_llff(llff_dir, colmap_images, holdout_every)
+                inputs = {"source": llff_dir}
+                record = {"source": "llff", "path": str(llff_dir), **posed.extra}
             else:
                 posed = read_colmap(colmap_dir, colmap_images, holdout_every)
                 inputs = {"source": colmap_dir}

@@ -1,7 +1,8 @@
 """Known-pose inputs -> `PosedImages` (OpenCV `world_from_cam`, pixel intrinsics, splits).
 
 Foreign conventions are converted here and nowhere else: transforms.json stores OpenGL
-camera-to-world matrices; COLMAP stores `cam_from_world` with quaternions.
+camera-to-world matrices; COLMAP stores `cam_from_world` with quaternions; LLFF's
+poses_bounds.npy stores camera-to-world matrices in (down, right, back) axes.
 """
 
 from __future__ import annotations
@@ -175,6 +176,64 @@ def read_transforms(path: Path, holdout_every: int = 8) -> PosedImages:
         gt_mesh = _gt_mesh(path)
     _dedupe_names(frames)
     return PosedImages(frames, source=str(path), gt_mesh=gt_mesh)
+
+
+LLFF_IMAGE_DIRS = ("images", "images_2", "images_4", "images_8")
+
+
+def opencv_c2w_from_llff(pose: np.ndarray) -> np.ndarray:
+    """(3, 4) camera-to-world in LLFF's axes (x down, y right, z back; Mildenhall et al. 2019,
+    "Local Light Field Fusion", the released poses_bounds.npy) -> (4, 4) OpenCV camera-to-world
+    (x right, y down, z forward): columns (y, x, -z) of the rotation, the centre unchanged."""
+    out = np.eye(4)
+    out[:3, 0], out[:3, 1], out[:3, 2] = pose[:, 1], pose[:, 0], -pose[:, 2]
+    out[:3, 3] = pose[:, 3]
+    return out
+
+
+def read_llff(root: Path, images_dir: Path | None = None, holdout_every: int = 8) -> PosedImages:
+    """An LLFF capture: `root/poses_bounds.npy`, (N, 17) rows of a flattened 3 x 5 matrix
+    [camera-to-world (3, 4) | (height, width, focal)] at the photos' original size and the
+    (near, far) depth bounds; the photos sorted by name in `images_dir`, else the first of
+    root/images, images_2, images_4, images_8 (the release's downsampled copies). Intrinsics are
+    scaled to the files' size with the principal point at the centre, as LLFF assumes; every
+    `holdout_every`-th photo is held out (LLFF's protocol with 8). The bounds go in `extra`."""
+    root = Path(root)
+    npy = root / "poses_bounds.npy" if root.is_dir() else root
+    if not npy.exists():
+        raise SourceError(f"{root} holds no poses_bounds.npy")
+    try:
+        rows = np.load(npy, allow_pickle=False)
+    except (ValueError, OSError) as e:
+        raise SourceError(f"cannot read {npy}: {e}") from e
+    if rows.ndim != 2 or rows.shape[1] != 17 or not np.all(np.isfinite(rows)):
+        raise SourceError(f"{npy} is not an (N, 17) array of finite LLFF poses and bounds")
+    base = npy.parent
+    folder = images_dir or next((base / d for d in LLFF_IMAGE_DIRS if (base / d).is_dir()), None)
+    if folder is None or not Path(folder).is_dir():
+        raise SourceError(
+            f"no images folder ({', '.join(LLFF_IMAGE_DIRS)}) beside {npy}; pass --images"
+        )
+    paths = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(paths) != len(rows):
+        raise SourceError(f"{npy} has {len(rows)} poses but {folder} holds {len(paths)} images")
+    frames = []
+    for path, row in zip(paths, rows):
+        mat = row[:15].reshape(3, 5)
+        h, w, focal = mat[:, 4]
+        width, height = _image_size(path)
+        if abs(width / w - height / h) > 0.01 * width / w:
+            raise SourceError(f"{path.name} is {width}x{height}, not the poses' {w:g}x{h:g} aspect")
+        f = focal * width / w
+        K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+        frames.append(
+            PosedImage(path.stem, path.resolve(), K, None, opencv_c2w_from_llff(mat[:, :4]), "")
+        )
+    for fr, s in zip(frames, holdout_split([fr.name for fr in frames], holdout_every)):
+        fr.split = s
+    _dedupe_names(frames)
+    bounds = {"near": float(rows[:, 15].min()), "far": float(rows[:, 16].max())}
+    return PosedImages(frames, source=str(npy), extra={"llff_bounds": bounds})
 
 
 def read_colmap(
