@@ -26,6 +26,7 @@ from recon.workspace.workspace import MVS_RESULT
 @config_option(EvalConfig, "lpips")
 @config_option(EvalConfig, "max_side", type=click.IntRange(0))
 @config_option(EvalConfig, "downscale", type=click.IntRange(0))
+@config_option(EvalConfig, "photo_size")
 @config_option(EvalConfig, "border", type=click.FloatRange(0.0, 0.5, min_open=True))
 @config_option(EvalConfig, "mvs")
 @config_option(EvalConfig, "pictures")

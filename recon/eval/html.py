@@ -189,10 +189,21 @@ def run_section(ws: Workspace, run: str, m: dict) -> str:
         return mvs_section(ws, m)
     mean = m.get("mean", {})
     lp = f", LPIPS {mean['lpips']:.4f}" if "lpips" in mean else ""
+    at = m.get("photo_size")
+    if at:
+        d, u = at["mean"], at["upsampled"]
+        at_lp = lambda x: f", LPIPS {x['lpips']:.4f}" if "lpips" in x else ""
+        photos = (
+            f" At the photos' own size, {_size(at['resolution'])}: PSNR {_fmt(d.get('psnr'))} dB, "
+            f"SSIM {_fmt(d.get('ssim'), 4)}{at_lp(d)} (the training-size render upsampled: "
+            f"{_fmt(u.get('psnr'))} dB, SSIM {_fmt(u.get('ssim'), 4)}{at_lp(u)})."
+        )
+    else:
+        photos = ""
     return (
         f'<h3 id="run-{esc(run)}">{esc(run)} ({esc(m.get("method", ""))})</h3>'
         f"<p>{m.get('views', 0)} held-out views at {_size(m.get('resolution'))}: PSNR "
-        f"{_fmt(mean.get('psnr'))} dB, SSIM {_fmt(mean.get('ssim'), 4)}{lp}.</p>"
+        f"{_fmt(mean.get('psnr'))} dB, SSIM {_fmt(mean.get('ssim'), 4)}{lp}.{photos}</p>"
         + views_table(ws, run, m)
         + mesh_gallery(ws, run)
         + videos(ws, run)

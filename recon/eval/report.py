@@ -25,8 +25,23 @@ def _size(wh) -> str:
 
 COLUMNS = (
     "run", "method", "trained at", "steps", "train s", "eval at", "PSNR", "border PSNR", "SSIM",
-    "LPIPS", "t→25 dB s", "render ms", "params", "peak MB", "Chamfer", "F-score", "depth absrel",
+    "LPIPS", "photos' size", "PSNR / LPIPS there (1× upsampled)", "t→25 dB s", "render ms", "params", "peak MB", "Chamfer", "F-score", "depth absrel",
 )  # fmt: skip
+
+
+def photo_size_cells(m: dict) -> list[str]:
+    """The photos' size and the scores there of the direct render and, in brackets, of the
+    training-size render upsampled (`eval.stage.photo_size_metrics`); dashes when the run trained
+    at the photos' size."""
+    at = m.get("photo_size")
+    if not at:
+        return ["–", "–"]
+    d, u = at["mean"], at["upsampled"]
+    lp = lambda x: f" / {_fmt(x['lpips'], 3)}" if "lpips" in x else ""
+    return [
+        _size(at["resolution"]),
+        f"{_fmt(d.get('psnr'))}{lp(d)} ({_fmt(u.get('psnr'))}{lp(u)})",
+    ]
 
 
 def row_cells(run: str, m: dict) -> list[str]:
@@ -44,6 +59,7 @@ def row_cells(run: str, m: dict) -> list[str]:
         _fmt(mean.get("psnr_border")),
         _fmt(mean.get("ssim"), 4),
         _fmt(mean.get("lpips"), 4),
+        *photo_size_cells(m),
         _fmt((sp.get("time_to_psnr_s") or {}).get("25"), 1),
         _fmt(m.get("render_ms_per_frame"), 1),
         _fmt(int(sp["parameters"]) if sp.get("parameters") else None),
@@ -64,6 +80,11 @@ def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
             "(the photos area-downsampled to it; renders of a finer-trained run too); "
             f"{any_m.get('lpips_network', '')}. Border PSNR: the outer "
             f"{100 * any_m.get('border_fraction', 0.15):.0f} % of each side, where a capture's far background shows."
+        ),
+        (
+            "- At the photos' size: the held-out views rendered at the size of the photos themselves "
+            "when the run trained coarser; in brackets the training-size render upsampled (bicubic) "
+            "for comparison (a direct render below it aliases)."
         ),
         "- Geometry (Chamfer, F-score at τ) in the original scene units against the ground truth, when given.",
         "- PSNR certifies interpolation between the cameras, not geometry: read both columns.",

@@ -53,6 +53,11 @@ class EvalConfig:
     downscale: int = opt(
         0, "evaluate at the sfm images downscaled by K (0 = the run's training level)"
     )
+    photo_size: bool = opt(
+        True,
+        "also score at the photos' own size (the sfm images) when the run trained coarser: the "
+        "direct render and, beside it, the training-size render upsampled (bicubic)",
+    )
     border: float = opt(
         0.15, "PSNR is also reported on the outer band of this fraction of each side"
     )
@@ -89,12 +94,13 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
     gts = load_images(ws, scene, idx, k_out).to(device)
     out_h, out_w = gts.shape[1:3]
     band = border_mask(out_h, out_w, cfg.border).to(device)
-    per_view, times, pictures = {}, [], {}
+    per_view, times, pictures, preds = {}, [], {}, []
     for i, fi in enumerate(idx):
         t0 = time.perf_counter()
         out = render_view(model, cams[i], out_w, out_h)
         times.append(time.perf_counter() - t0)
         pred = out["rgb"].clamp(0, 1)
+        preds.append(pred.cpu())
         m = {
             "psnr": float(psnr(pred, gts[i])),
             "ssim": float(ssim(pred, gts[i])),
@@ -128,7 +134,13 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
     keys = sorted({k for v in per_view.values() for k in v})
     mean = {k: _nanmean([v[k] for v in per_view.values() if k in v]) for k in keys}
     sfm_size = scene.image_size("train")
+    finer = cfg.photo_size and not (cfg.max_side or cfg.downscale) and k_out > 1
     return {
+        **(
+            {"photo_size": photo_size_metrics(ws, model, scene, idx, preds, device, lpips_model)}
+            if finer
+            else {}
+        ),
         "per_view": per_view,
         "pictures": pictures,
         "mean": mean,
@@ -138,6 +150,38 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
         "downscale": k_out,
         "rendered_at": {"downscale": k_render, "size": list(level_size(*sfm_size, k_render))},
         "border_fraction": cfg.border,
+    }
+
+
+def photo_size_metrics(ws: Workspace, model, scene, idx, low, device, lpips_model) -> dict:
+    """The held-out views at the photos' own size (pyramid level 1): PSNR / SSIM (/ LPIPS) of
+    the model rendered there ("direct") and of its renders at the training size `low`
+    ((H, W, 3) each) upsampled bicubically ("upsampled"). A model that renders finer than it
+    trained no better than its upscaled image aliases there (Yu et al. 2024, "Mip-Splatting",
+    Sec. 1: zooming in shows the dilation and sub-pixel splats a training size never saw)."""
+    from recon.metrics.lpips import lpips
+    from recon.workspace.scene import load_images
+
+    cams = scene.cameras(idx, device, 1)
+    rows: dict[str, list[dict]] = {"direct": [], "upsampled": []}
+    for i in range(len(idx)):
+        gt = load_images(ws, scene, [idx[i]], 1)[0].to(device)
+        h, w = gt.shape[:2]
+        direct = render_view(model, cams[i], w, h)["rgb"].clamp(0, 1)
+        up = cv2.resize(low[i].float().numpy(), (w, h), interpolation=cv2.INTER_CUBIC)
+        up = torch.from_numpy(up).clamp(0, 1).to(device)
+        for name, img in (("direct", direct), ("upsampled", up)):
+            m = {"psnr": float(psnr(img, gt)), "ssim": float(ssim(img, gt))}
+            if lpips_model is not None:
+                m["lpips"] = float(lpips(img, gt, lpips_model))
+            rows[name].append(m)
+    w, h = scene.image_size("train")
+    means = {n: {k: _nanmean([r[k] for r in rs]) for k in rs[0]} for n, rs in rows.items()}
+    return {
+        "resolution": [int(w), int(h)],
+        "downscale": 1,
+        "mean": means["direct"],
+        "upsampled": means["upsampled"],
     }
 
 
