@@ -19,7 +19,7 @@ def test_eval_scores_a_coarser_trained_run_at_the_photos_size_too(tmp_path):
     report = (ws / "report.md").read_text()
     assert "photos' size" in report and "| 32×32 |" in report
     assert "At the photos' own size, 32×32" in (ws / "report.html").read_text()
-    # an explicit output size, or --no-photo-size, scores that size alone
+    # scored at the photos' size, or with --no-photo-size, there is one size alone
     recon_cli(
         "eval", "-w", str(ws), "--run", "3dgs", "--no-lpips", "--no-pictures", "--downscale", "1"
     )

@@ -195,7 +195,7 @@ def run_section(ws: Workspace, run: str, m: dict) -> str:
         at_lp = lambda x: f", LPIPS {x['lpips']:.4f}" if "lpips" in x else ""
         photos = (
             f" At the photos' own size, {_size(at['resolution'])}: PSNR {_fmt(d.get('psnr'))} dB, "
-            f"SSIM {_fmt(d.get('ssim'), 4)}{at_lp(d)} (the training-size render upsampled: "
+            f"SSIM {_fmt(d.get('ssim'), 4)}{at_lp(d)} (the render at {_size(m.get('resolution'))} upsampled: "
             f"{_fmt(u.get('psnr'))} dB, SSIM {_fmt(u.get('ssim'), 4)}{at_lp(u)})."
         )
     else:

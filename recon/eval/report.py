@@ -31,8 +31,8 @@ COLUMNS = (
 
 def photo_size_cells(m: dict) -> list[str]:
     """The photos' size and the scores there of the direct render and, in brackets, of the
-    training-size render upsampled (`eval.stage.photo_size_metrics`); dashes when the run trained
-    at the photos' size."""
+    render at the size in "eval at" upsampled (`eval.stage.photo_size_metrics`); dashes when
+    the views were scored at the photos' size."""
     at = m.get("photo_size")
     if not at:
         return ["–", "–"]
@@ -83,7 +83,7 @@ def write_report(ws: Workspace, metrics: dict[str, dict]) -> None:
         ),
         (
             "- At the photos' size: the held-out views rendered at the size of the photos themselves "
-            "when the run trained coarser; in brackets the training-size render upsampled (bicubic) "
+            "when 'eval at' is coarser; in brackets the render at 'eval at' upsampled (bicubic) "
             "for comparison (a direct render below it aliases)."
         ),
         "- Geometry (Chamfer, F-score at τ) in the original scene units against the ground truth, when given.",

@@ -55,8 +55,8 @@ class EvalConfig:
     )
     photo_size: bool = opt(
         True,
-        "also score at the photos' own size (the sfm images) when the run trained coarser: the "
-        "direct render and, beside it, the training-size render upsampled (bicubic)",
+        "also score at the photos' own size (the sfm images) when the views are scored coarser: "
+        "the direct render and, beside it, the coarser render upsampled (bicubic)",
     )
     border: float = opt(
         0.15, "PSNR is also reported on the outer band of this fraction of each side"
@@ -134,7 +134,7 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
     keys = sorted({k for v in per_view.values() for k in v})
     mean = {k: _nanmean([v[k] for v in per_view.values() if k in v]) for k in keys}
     sfm_size = scene.image_size("train")
-    finer = cfg.photo_size and not (cfg.max_side or cfg.downscale) and k_out > 1
+    finer = cfg.photo_size and k_out > 1
     return {
         **(
             {"photo_size": photo_size_metrics(ws, model, scene, idx, preds, device, lpips_model)}
@@ -155,8 +155,8 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
 
 def photo_size_metrics(ws: Workspace, model, scene, idx, low, device, lpips_model) -> dict:
     """The held-out views at the photos' own size (pyramid level 1): PSNR / SSIM (/ LPIPS) of
-    the model rendered there ("direct") and of its renders at the training size `low`
-    ((H, W, 3) each) upsampled bicubically ("upsampled"). A model that renders finer than it
+    the model rendered there ("direct") and of its renders at the evaluated size `low`
+    ((H, W, 3) each; by default the training size) upsampled bicubically ("upsampled"). A model that renders finer than it
     trained no better than its upscaled image aliases there (Yu et al. 2024, "Mip-Splatting",
     Sec. 1: zooming in shows the dilation and sub-pixel splats a training size never saw)."""
     from recon.metrics.lpips import lpips
