@@ -78,7 +78,9 @@ def score(ws: Path, run: str, lpips_on: bool) -> dict:
             name: {key: float(np.mean([r[key] for r in rs])) for key in rs[0]}
             for name, rs in rows.items()
         }
-        out[f"{w}px"]["gain_db"] = out[f"{w}px"]["direct"]["psnr"] - out[f"{w}px"]["upsampled"]["psnr"]
+        out[f"{w}px"]["gain_db"] = (
+            out[f"{w}px"]["direct"]["psnr"] - out[f"{w}px"]["upsampled"]["psnr"]
+        )
     return out
 
 
@@ -86,8 +88,10 @@ def markdown(doc: dict) -> str:
     lines = [
         f"# Rendering finer than the training size ({doc['date']}, {doc['host']}, commit {doc['commit']})",
         "",
-        f"lego-400, trained at 100 px for {doc['steps']} steps, 25 held-out views; `gain` = direct "
-        "render PSNR minus the 100 px render upsampled (bicubic), at each size.",
+        (
+            f"lego-400, trained at 100 px for {doc['steps']} steps, 25 held-out views; `gain` = "
+            "direct render PSNR minus the 100 px render upsampled (bicubic), at each size."
+        ),
         "",
         "| method | variant | options | 100 px | 200 px direct / upsampled / gain | 400 px direct / upsampled / gain | LPIPS 400 px direct / upsampled |",
         "|---|---|---|---|---|---|---|",

@@ -38,6 +38,7 @@ from recon.cameras.pose_refine import PoseCorrection
 from recon.gaussians import densify, gsplat_glue, mcmc
 from recon.gaussians.coarse_to_fine import c2f_factor
 from recon.gaussians.contribution import contributions, least_contributing
+from recon.gaussians.footprint import with_training_footprint
 from recon.gaussians.init import (
     gaussians_from_points,
     gaussians_from_splat_ply,
@@ -229,6 +230,10 @@ class GaussiansConfig:
     filter_3d: float = opt(
         0.0,
         "Mip-Splatting's 3D smoothing filter: each Gaussian convolved with an isotropic one of this many squared training sampling intervals (0 = off; the paper's 0.2). Exports carry it baked in, so an init_ply from one should train with 0",
+    )
+    footprint_filter: bool = opt(
+        True,
+        "renders finer than the training views keep each splat's training footprint: its 0.3 px^2 dilation held in world units (0.3 (f T / z)^2 px^2 where the render samples a Gaussian finer than its finest training view did, T that view's sampling interval); renders at the training size are unchanged",
     )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
@@ -821,6 +826,9 @@ class GaussianModel(Model):
         splats = project_splats(
             self.gaussians(), camera.to(device), degree, c.near_plane, c.antialiased
         )
+        if c.footprint_filter and len(self.filter_intervals) == self.num_gaussians:
+            focal = float(camera.K[0, 0, 0])
+            splats = with_training_footprint(splats, self.filter_intervals, focal, c.antialiased)
         out = composite_rgbd(splats, self.background)
         acc = out["acc"]
         depth = surface_depth(out["depth"], acc)
@@ -828,6 +836,18 @@ class GaussianModel(Model):
         if self.appearance is not None and len(self.appearance.deltas):
             rgb = self.appearance.for_camera(rgb, camera)  # nearest training photos' exposure
         return {"rgb": rgb, "depth": depth, "acc": acc}
+
+    @torch.no_grad()
+    def finish(self, data: TrainData) -> dict[str, float]:
+        """With footprint_filter: each Gaussian's finest sampling interval over the training
+        views, for `render` (`footprint.with_training_footprint`; filter_3d keeps its own up to
+        date while it trains). The training views render as before."""
+        stale = len(self.filter_intervals) != self.num_gaussians
+        if self.config.footprint_filter and (self.config.filter_3d <= 0 or stale):
+            means = self.params["means"].detach()
+            cameras = self.train_cameras(data.cameras).to(means.device)
+            self.filter_intervals = sampling_intervals(means, cameras, near=self.config.near_plane)
+        return {}
 
     def training_state(self) -> dict:
         state = {
