@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: install test lint demo bench sweep browser clean gpu-wheels gpu-check
+.PHONY: install test lint docs demo bench sweep browser clean gpu-wheels gpu-check
 
 install: $(BIN)/recon
 
@@ -16,8 +16,15 @@ $(BIN)/recon: pyproject.toml
 	@touch $@
 
 # two xdist workers on two cores: one thread each, or OpenMP oversubscription costs 10-40x
-test: lint
+test: lint docs
 	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile tests
+
+# the docs site (mkdocs.yml) into site/; --strict: a broken link or a missing page fails. The
+# reference pages are made from the code at build time (docs/hooks/reference.py). The variable
+# silences Material's banner about MkDocs 2.0, printed on every build. Not --quiet: it hides the
+# warnings that --strict counts, and the build passes whatever they say.
+docs: install
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict -d site
 
 # Debian's chromium + chromedriver for the report.html browser test (skipped, with the reason,
 # where they are missing); needs root or sudo, as CI has
@@ -32,8 +39,8 @@ browser:
 
 # ruff (lint and format), and the layer order of pyproject.toml's import-linter contract
 lint: install
-	$(BIN)/ruff check recon tests pipelines
-	$(BIN)/ruff format --check recon tests pipelines
+	$(BIN)/ruff check recon tests pipelines docs
+	$(BIN)/ruff format --check recon tests pipelines docs
 	$(BIN)/lint-imports
 
 # the product at its best on the project's own scene: sfm from its photos, 3dgs, an orbit video,
@@ -80,4 +87,4 @@ gpu-check:
 	python3 pipelines/gpu_check.py --wheels $(GPU_WHEELS)
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .gpu-site
+	rm -rf $(VENV) build *.egg-info .pytest_cache .gpu-site site
