@@ -3,7 +3,7 @@ Gaussian Splatting for Real-Time Radiance Field Rendering"), its flat config and
 
 A training step renders one full training view (shuffled epoch order), takes
 loss = (1 - lambda) L1 + lambda (1 - SSIM), runs fused Adam with the reference's per-attribute
-learning rates (means scaled by the camera extent, decayed exponentially), and lets
+learning rates (means scaled by the scene extent, decayed exponentially), and lets
 `densify.post_step` clone, split, prune and reset.
 
 With `pose_refine` the step also learns a correction of the training view's pose
@@ -70,6 +70,12 @@ from recon.models.schedules import (
 from recon.options import on_off_auto, opt
 from recon.volrend import surface_depth
 
+# A capture whose camera extent is below this fraction of the median depth of its SfM points
+# is seen from a small baseline (all cameras looking one way: a forward-facing capture)
+FORWARD_FACING_RATIO = 0.5
+EXTENT_RULES = ("auto", "cameras", "depth")
+
+
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`,
 # schedule_fit "tuned": the fast preset's; "reference" scales the config's own schedules,
 # `schedule_fractions`): with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
@@ -116,8 +122,8 @@ class GaussiansConfig:
     sh_degree_interval: int = opt(1000, "raise the active SH degree by one every this many steps")
     near_plane: float = opt(0.01, "Gaussians with camera z <= this are culled")
     ssim_weight: float = opt(0.2, "lambda in (1 - lambda) L1 + lambda (1 - SSIM)")
-    lr_means: float = opt(0.00016, "means lr at step 0, times the camera extent")
-    lr_means_final: float = opt(0.0000016, "means lr after lr_decay_steps, times the camera extent")
+    lr_means: float = opt(0.00016, "means lr at step 0, times the scene extent (`extent`)")
+    lr_means_final: float = opt(0.0000016, "means lr after lr_decay_steps, times the scene extent")
     lr_decay_steps: int = opt(30_000, "steps of the exponential decay of the means lr")
     lr_sh_dc: float = opt(0.0025, "lr of the degree-0 SH coefficients")
     lr_sh_rest: float = opt(0.000125, "lr of the degree 1-3 SH coefficients (dc / 20)")
@@ -235,6 +241,11 @@ class GaussiansConfig:
         True,
         "renders finer than the training views keep each splat's training footprint: its 0.3 px^2 dilation held in world units (0.3 (f T / z)^2 px^2 where the render samples a Gaussian finer than its finest training view did, T that view's sampling interval); renders at the training size are unchanged",
     )
+    extent: str = opt(
+        "auto",
+        "the scene length the means lr and the densification's size thresholds scale with: cameras (the reference's camera extent) | depth (the SfM points' median depth) | auto (depth for a forward-facing capture, whose camera spread is under half that depth)",
+        choices=EXTENT_RULES,
+    )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
 
@@ -325,6 +336,36 @@ def camera_extent(cameras: Cameras) -> float:
     centers = cameras.centers.double()
     radius = (centers - centers.mean(0)).norm(dim=-1).max().item()
     return 1.1 * radius if radius > 1e-9 else 1.0
+
+
+def median_point_depth(cameras: Cameras, points: Tensor, max_points: int = 20_000) -> float:
+    """The median z-depth of `points` (P, 3) over the cameras (C) they are in front of (at most
+    `max_points`, evenly strided); 0 when none is in front of any camera."""
+    pts = points[:: max(1, len(points) // max_points)].double()
+    M = cameras.cam_from_world.double()
+    z = (pts @ M[:, :3, :3].transpose(1, 2))[..., 2] + M[:, None, :3, 3][..., 2]  # (C, P)
+    z = z[z > 0]
+    return float(z.median()) if len(z) else 0.0
+
+
+def scene_extent(cameras: Cameras, points: Tensor | None, rule: str) -> float:
+    """The length the means' lr and the densification's size thresholds are measured in:
+    "cameras" -> `camera_extent` (the reference's; for a capture around an object, about the
+    object's distance); "depth" -> 1.1 x the median depth of the SfM points; "auto" -> "depth"
+    for a forward-facing capture (camera extent < FORWARD_FACING_RATIO x that depth, where the
+    cameras' spread says nothing of the scene's size: llff_flower 0.073 against 0.81), else
+    "cameras". Without points, "cameras"."""
+    if rule not in EXTENT_RULES:
+        raise ValueError(f"extent must be one of {', '.join(EXTENT_RULES)}, got {rule!r}")
+    cams = camera_extent(cameras)
+    if rule == "cameras" or points is None or len(points) == 0:
+        return cams
+    depth = 1.1 * median_point_depth(cameras, points)
+    if depth <= 0:
+        return cams
+    if rule == "depth" or cams < FORWARD_FACING_RATIO * depth:
+        return depth
+    return cams
 
 
 def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
@@ -477,12 +518,17 @@ class GaussianModel(Model):
         self._planned = config  # as fitted to the planned run (`replan` starts from it)
         self.strategy = densify_strategy(config, bool(scene.unbounded))
         self.register_buffer("background", scene.background.float().clone())
-        self.register_buffer("scene_extent", torch.zeros(()))  # set from the training cameras
+        self.register_buffer("scene_extent", torch.zeros(()))  # set at the first step
         self.register_buffer("active_sh_degree", torch.zeros((), dtype=torch.long))
         # (G,) each Gaussian's finest training sampling interval (filter_3d > 0; `_update_filter`)
         self.register_buffer("filter_intervals", torch.zeros(0))
         self._aabb = scene.aabb.float().clone()
         self._unbounded = bool(scene.unbounded)
+        if config.extent not in EXTENT_RULES:
+            raise ValueError(
+                f"extent must be one of {', '.join(EXTENT_RULES)}, got {config.extent!r}"
+            )
+        self._points = scene.points  # for the scene extent at the first step (`scene_extent`)
         self._min_sh_degree = 0  # a PLY start keeps the SH degrees it already has
         if config.init_ply:
             if scene.scene_from_world is None:
@@ -718,14 +764,14 @@ class GaussianModel(Model):
             )
 
     def _prepare_step(self, data: TrainData, step: int) -> float:
-        """Scene extent (from the training cameras, once), SH degree and means lr for `step`."""
+        """Scene extent (`scene_extent`, once), SH degree and means lr for `step`."""
         c = self.config
         if step == 0 and self._random_init and c.init_from_images:
             self._init_from_images(data)
         # the float32 buffer's value, read from the device once (and again after a load), so a
         # resumed run sees the same extent
         if devices.host_value(self, "extent", self.scene_extent, float) == 0.0:
-            self.scene_extent.fill_(camera_extent(data.cameras))
+            self.scene_extent.fill_(scene_extent(data.cameras, self._points, c.extent))
         extent = devices.host_value(self, "extent", self.scene_extent, float)
         device = self.params["means"].device
         if self.densify_state["grad2d"].device != device:  # the model was moved after init
