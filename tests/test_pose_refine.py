@@ -232,6 +232,14 @@ def test_training_moves_the_poses_but_never_the_held_out_cameras():
                 model.background,
             )
         assert torch.equal(out["rgb"], ref["rgb"])
+    # every other training camera (`recon render --split train --every 2`) takes its own
+    # correction, not the first half's
+    every = model.train_cameras(data.cameras[::2], list(range(len(data.cameras)))[::2])
+    assert torch.allclose(every.cam_from_world, corrected.cam_from_world[::2])
+    assert not torch.allclose(
+        model.train_cameras(data.cameras[::2], list(range(len(data.cameras[::2])))).cam_from_world,
+        corrected.cam_from_world[::2],
+    )
 
 
 def test_resume_with_pose_refinement_is_exact():

@@ -187,6 +187,12 @@ class Model(nn.Module):
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         raise NotImplementedError
 
+    def train_cameras(self, cameras: Cameras, positions: list[int] | None = None) -> Cameras:
+        """The training cameras as the model learnt them: `cameras` are those at `positions`
+        in the training split (default: all of it, in order). Models that refine poses return
+        them corrected; the others as given."""
+        return cameras
+
     def density(self, points: Tensor) -> Tensor:
         """Volume density sigma (N,) at normalized points (N, 3); models with `has_density`."""
         raise NotImplementedError

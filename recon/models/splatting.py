@@ -34,7 +34,7 @@ from torch.profiler import record_function
 
 from recon import devices
 from recon.cameras import Cameras
-from recon.cameras.pose_refine import PoseCorrection
+from recon.cameras.pose_refine import PoseCorrection, correct_cameras
 from recon.gaussians import densify, gsplat_glue, mcmc
 from recon.gaussians.coarse_to_fine import c2f_factor
 from recon.gaussians.contribution import contributions, least_contributing
@@ -753,14 +753,20 @@ class GaussianModel(Model):
         self.pose_correction.hold_frozen()
         self.pose_correction.remove_gauge()
 
-    def train_cameras(self, cameras: Cameras) -> Cameras:
-        """The training cameras (in training order) as the model learnt them: corrected by
-        the pose twists if pose_refine, else unchanged. Other cameras take no correction."""
+    def train_cameras(self, cameras: Cameras, positions: list[int] | None = None) -> Cameras:
+        """The training cameras at `positions` of the training split (default: all, in
+        order) as the model learnt them: corrected by those cameras' pose twists if
+        pose_refine, else unchanged. Other cameras take no correction."""
         if self.pose_correction is None or len(self.pose_correction.twists) == 0:
             return cameras
+        positions = list(range(len(cameras))) if positions is None else positions
+        if len(positions) != len(cameras):
+            raise ValueError(f"{len(cameras)} cameras but {len(positions)} positions")
+        twists = self.pose_correction.twists
+        picked = torch.as_tensor(positions, dtype=torch.long, device=twists.device)
         with torch.no_grad():
-            return self.pose_correction(
-                cameras.to(self.pose_correction.twists.device), list(range(len(cameras)))
+            return correct_cameras(
+                cameras.to(twists.device), twists[picked], self.pose_correction.pivots[picked]
             )
 
     def _prepare_step(self, data: TrainData, step: int) -> float:

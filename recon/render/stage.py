@@ -91,12 +91,13 @@ def render_run(
         sizes = [level_size(*scene.image_size("train"), k_out)] * len(cams)
         target = cfg.path
     else:
-        idx = scene.split(cfg.split)[:: cfg.every]
+        split = scene.split(cfg.split)
+        idx = split[:: cfg.every]
         if not idx:
             raise WorkspaceError(f"the scene has no '{cfg.split}' views")
         cams, names = scene.cameras(idx, device, k_render), [scene.frames[i]["name"] for i in idx]
-        if cfg.split == "train" and hasattr(model, "train_cameras"):
-            cams = model.train_cameras(cams)  # the training poses as the model refined them
+        if cfg.split == "train":  # the training poses as the model refined them
+            cams = model.train_cameras(cams, list(range(len(split)))[:: cfg.every])
         sizes = [
             level_size(scene.frames[i]["width"], scene.frames[i]["height"], k_out) for i in idx
         ]
