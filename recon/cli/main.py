@@ -15,6 +15,7 @@ from recon.cli.common import fail
 # command name -> (module under recon.cli, attribute): each command's module (and what it
 # imports: torch, trimesh, pycolmap) is loaded only when that command runs or help lists it.
 COMMANDS = {
+    "run": ("run_cmd", "command"),
     "sfm": ("sfm_cmd", "sfm"),
     "mvs": ("mvs_cmd", "command"),
     "train": ("train_cmd", "command"),
