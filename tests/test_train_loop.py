@@ -282,6 +282,34 @@ def test_rollback_after_nan_in_a_real_run(tmp_path):
     assert rollback["lr_scale"] == 0.5 and "loss became nan" in rollback["cause"]
 
 
+def test_a_run_that_keeps_failing_says_so_in_run_json_and_its_log(tmp_path):
+    from recon.train.stage import MAX_ROLLBACKS, train
+    from recon.workspace import Workspace
+    from tests.conftest import make_blender_dataset, recon_cli
+
+    data = make_blender_dataset(tmp_path / "d")
+    recon_cli("sfm", "--from-transforms", str(data), "-w", str(tmp_path / "ws"))
+    register(
+        MethodSpec(
+            name="toy",
+            config_cls=ToyConfig,
+            build=lambda cfg, scene: Toy(poison_steps=range(3, 100)),
+            presets={"fast": {}},
+        )
+    )
+    ws = Workspace.open(tmp_path / "ws")
+    cfg = TrainConfig(
+        method="toy", steps=20, checkpoint_every_s=0.0, eval_views=1, eval_every_s=0.0
+    )
+    with pytest.raises(FloatingPointError):
+        train(ws, "toy", cfg, [], resume=False, force=False, log_fn=lambda *_: None)
+    doc = json.loads(ws.run_json("toy").read_text())
+    assert doc["status"] == "failed" and "FloatingPointError" in doc["error"]
+    log = [json.loads(ln) for ln in ws.log_jsonl("toy").read_text().splitlines()]
+    assert sum(e.get("event") == "rollback" for e in log) == MAX_ROLLBACKS
+    assert log[-1]["event"] == "failed"
+
+
 def test_learning_rate_scale_applies_during_step_only():
     from recon.train.stage import LearningRateScale
 

@@ -390,6 +390,13 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
             f"interrupted at step {st.step}; checkpoint saved. Resume with: "
             f"recon train -w {ws.root} --run {run} --resume"
         )
+    except Exception as e:  # the last allowed rollback, or anything else: say so and close
+        error = f"{type(e).__name__}: {e}"
+        log({"step": st.step, "wall_s": st.wall_s, "event": "failed", "error": error})
+        log_file.close()
+        failed = {**run_doc, "status": "failed", "step": st.step, "error": error}
+        atomic_write_json(ws.run_json(run), failed)
+        raise
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
