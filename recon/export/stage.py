@@ -57,13 +57,10 @@ def export_splats(
             f"run '{run}' is a {run_doc['method']} run, which has no Gaussians to "
             "export (`recon export` writes the Gaussian splats of a 3dgs run)"
         )
-    cameras = None
-    if getattr(model.config, "antialiased", False):
-        # the compensation is a function of the view: bake its mean over the training views,
-        # at the resolution the run trained at (`GaussianModel.splats`)
-        level = trained_resolution(run_doc, scene).downscale
-        cameras = scene.cameras(scene.split("train"), "cpu", level)
-    g = model.splats(cameras)
+    # the training views at the resolution the run trained at: a model whose render-time terms
+    # depend on the view (3dgs's antialiasing compensation) bakes their mean over them
+    level = trained_resolution(run_doc, scene).downscale
+    g = model.splats(scene.cameras(scene.split("train"), "cpu", level))
     if frame == "world":
         sim = scene.scene_from_world
         g = gaussians_to_world(g, sim.scale, sim.R, sim.t)
@@ -82,7 +79,7 @@ def export_splats(
         "gaussians": len(g["means"]),
         "sh_degree": 0 if fmt == "splat" else degree,
         "frame": frame,
-        "antialias_baked": cameras is not None,
+        "antialias_baked": model.bakes_view_terms,
         "bytes": out.stat().st_size,
         "seconds": round(time.time() - t0, 3),
     }

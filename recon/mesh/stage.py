@@ -116,7 +116,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     level = trained_resolution(run_doc, scene).downscale  # views are rendered at the training size
     aabb = scene.info.aabb.to(device)
     method = cfg.method
-    has_sdf = getattr(model, "has_sdf", False)
+    has_sdf = model.has_sdf
     if method == "auto":
         method = "marching-cubes" if has_sdf else "tsdf"
     started = time.time()
@@ -124,7 +124,12 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
     if method == "marching-cubes" and has_sdf:
         # the surface is the zero level set of the distance, inside where it is negative
         mesh = extract_density_mesh(
-            lambda p: -model.sdf(p), aabb, cfg.resolution, 0.0, color_fn=model.color, device=device
+            lambda p: -model.sdf(p),
+            aabb,
+            cfg.resolution,
+            0.0,
+            color_fn=model.point_colors,
+            device=device,
         )
         detail = {"level": "sdf = 0", "normals": "field gradient"}
     elif method == "marching-cubes":
@@ -136,7 +141,7 @@ def mesh_run(ws: Workspace, run: str, cfg: MeshConfig, force: bool = False, prog
             choose_density_threshold(side / cfg.resolution),
             rendered_surface_density(model, scene, cfg, device, level),
         )
-        color_fn = getattr(model, "color", None)
+        color_fn = model.point_colors if model.has_point_colors else None
         mesh = extract_density_mesh(
             model.density, aabb, cfg.resolution, threshold, color_fn=color_fn, device=device
         )

@@ -160,8 +160,13 @@ class Model(nn.Module):
     """
 
     has_density: bool = False  # `density(points)` is defined: marching cubes on the field
+    has_sdf: bool = False  # `sdf(points)` is defined: the surface is its zero level set
+    has_point_colors: bool = False  # `point_colors(points)` is defined: coloured mesh vertices
     has_radiance: bool = False  # `radiance(points, directions)` is defined: a bake to voxels
     exports_splats: bool = False  # `splats()` returns its Gaussians (the splat PLY export)
+    # `splats(cameras)` folds a view-dependent render-time term into its values, averaged over
+    # the cameras (3dgs's antialiasing compensation): the export passes the training views
+    bakes_view_terms: bool = False
     # Its renders at a coarser level than it trained at are not faithful: 3DGS dilates every
     # projected Gaussian by 0.3 px, which thickens and brightens the splats that minification
     # makes sub-pixel (the "dilation" artefact of zooming out, Yu et al. 2024, Mip-Splatting).
@@ -197,13 +202,24 @@ class Model(nn.Module):
         """Volume density sigma (N,) at normalized points (N, 3); models with `has_density`."""
         raise NotImplementedError
 
+    def sdf(self, points: Tensor) -> Tensor:
+        """Signed distance (N,) at normalized points (N, 3), negative inside; models with
+        `has_sdf`."""
+        raise NotImplementedError
+
+    def point_colors(self, points: Tensor) -> Tensor:
+        """A view-independent colour (N, 3) in [0, 1] at normalized points (N, 3), for mesh
+        vertices; models with `has_point_colors`."""
+        raise NotImplementedError
+
     def radiance(self, points: Tensor, directions: Tensor) -> tuple[Tensor, Tensor]:
         """The field at normalized points (N, 3) seen along each of D unit directions (D, 3):
         sigma (N,) and colour (N, D, 3) in [0, 1]; models with `has_radiance`."""
         raise NotImplementedError
 
-    def splats(self) -> dict:
-        """The Gaussians as numpy arrays in the scene frame (means (G, 3), quats wxyz (G, 4),
+    def splats(self, cameras: Cameras | None = None) -> dict:
+        """The Gaussians (as a viewer without the model's own render-time terms should draw
+        them over the training `cameras`, when given) as numpy arrays in the scene frame (means (G, 3), quats wxyz (G, 4),
         log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)); models with `exports_splats`."""
         raise NotImplementedError
 

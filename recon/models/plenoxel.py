@@ -150,6 +150,7 @@ class PlenoxelConfig:
 
 class PlenoxelModel(Model):
     has_density = True
+    has_point_colors = True
 
     def __init__(self, cfg: PlenoxelConfig, scene: SceneInfo):
         super().__init__()
@@ -205,7 +206,7 @@ class PlenoxelModel(Model):
         with torch.no_grad():
             return torch.cat([self._sigma_unit(self.to_unit(p)) for p in points.split(1 << 18)])
 
-    def color(self, points: Tensor) -> Tensor:
+    def point_colors(self, points: Tensor) -> Tensor:
         """View-independent (degree-0 SH) colour at normalized points (N, 3) -> (N, 3), for meshes."""
         with torch.no_grad():
             out = []

@@ -199,6 +199,7 @@ TERMINATION_FIRST_SAMPLES = 16
 class SDFModel(Model):
     has_density = True
     has_sdf = True
+    has_point_colors = True
 
     def __init__(self, cfg: SDFConfig, scene: SceneInfo):
         super().__init__()
@@ -297,7 +298,7 @@ class SDFModel(Model):
         """grad f (N, 3) at scene points (N, 3): the outward normal (unit where eikonal)."""
         return sdf_and_gradient(self.field, self.to_field(points), create_graph=False)[1]
 
-    def color(self, points: Tensor) -> Tensor:
+    def point_colors(self, points: Tensor) -> Tensor:
         """rgb (N, 3) at surface points seen head-on (view direction -normal): vertex colours."""
         x = self.to_field(points)
         _, grad, feature = sdf_and_gradient(self.field, x, create_graph=False)

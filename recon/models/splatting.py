@@ -589,6 +589,11 @@ class GaussianModel(Model):
             self.pose_optimizer = torch.optim.Adam([group], lr=self.config.lr_pose, eps=1e-15)
 
     @property
+    def bakes_view_terms(self) -> bool:
+        """Antialiased: `splats(cameras)` bakes the compensation's mean into the opacities."""
+        return self.config.antialiased
+
+    @property
     def num_gaussians(self) -> int:
         return self.params["means"].shape[0]
 
@@ -623,7 +628,7 @@ class GaussianModel(Model):
         sigmoid(logit) times its mean over the views (`render.mean_compensation`), so that a
         viewer that does not compensate shows it as training did, on average."""
         g = {k: v.detach() for k, v in self.gaussians().items()}
-        if self.config.antialiased and cameras is not None:
+        if self.bakes_view_terms and cameras is not None:
             comp = mean_compensation(g, self.train_cameras(cameras), self.config.near_plane)
             opacity = torch.sigmoid(g["opacity_logits"].double().cpu()) * comp
             logits = torch.log(opacity) - torch.log1p(-opacity)
