@@ -233,7 +233,13 @@ def bench_scene(name: str, methods: str, budgets: str, ws: Path, out: Path, reus
             except RuntimeError as e:
                 r = {"method": method, "budget_s": budget, "error": str(e).splitlines()[-1]}
             results["runs"].append(r)
-    (out / f"{date}-{machine}-{name}.json").write_text(json.dumps(results, indent=1) + "\n")
+    written = out / f"{date}-{machine}-{name}.json"
+    if written.exists():  # an earlier invocation of the day: its other runs stay in the table
+        ran = {(r["method"], r["budget_s"]) for r in results["runs"]}
+        earlier = json.loads(written.read_text()).get("runs", [])
+        kept = [r for r in earlier if (r["method"], r["budget_s"]) not in ran]
+        results["runs"] = sorted(kept + results["runs"], key=lambda r: (r["method"], r["budget_s"]))
+    written.write_text(json.dumps(results, indent=1) + "\n")
     (out / f"{date}-{machine}-{name}.md").write_text(markdown(results))
     print(markdown(results))
 
