@@ -1,5 +1,5 @@
 """Rendering finer than the training size: the single-scale protocol of Mip-Splatting (Yu et
-al. 2024, Sec. 6.2, "train at one scale, test at several") on Blender lego.
+al. 2024: train at a single scale, test at several) on Blender lego.
 
 `recon sfm --from-transforms nerf_synthetic_lego_400` (400 x 400), `recon train --method M
 --downscale 4` (100 x 100, the run's training size) for a fixed number of steps (so the A/B

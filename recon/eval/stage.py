@@ -156,9 +156,10 @@ def image_metrics(ws: Workspace, run: str, cfg: EvalConfig, device, lpips_model)
 def photo_size_metrics(ws: Workspace, model, scene, idx, low, device, lpips_model) -> dict:
     """The held-out views at the photos' own size (pyramid level 1): PSNR / SSIM (/ LPIPS) of
     the model rendered there ("direct") and of its renders at the evaluated size `low`
-    ((H, W, 3) each; by default the training size) upsampled bicubically ("upsampled"). A model that renders finer than it
-    trained no better than its upscaled image aliases there (Yu et al. 2024, "Mip-Splatting",
-    Sec. 1: zooming in shows the dilation and sub-pixel splats a training size never saw)."""
+    ((H, W, 3) each; by default the training size) upsampled bicubically ("upsampled"). A
+    model that renders finer than it trained no better than its upscaled image aliases there
+    (the zoom-in artefact of Yu et al. 2024, "Mip-Splatting": the dilation and sub-pixel
+    splats a training size never saw)."""
     from recon.metrics.lpips import lpips
     from recon.workspace.scene import load_images
 

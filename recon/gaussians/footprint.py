@@ -1,13 +1,13 @@
 """Rendering finer than the training views sampled: every splat keeps at least the screen-space
 footprint its finest training view gave it.
 
-A 3D Gaussian splatting model is fitted through a low-pass dilation of 0.3 px^2 added to every
-projected covariance (Kerbl et al. 2023, Sec. 4; the screen-space filter of EWA splatting,
-Zwicker et al. 2001, Sec. 5), in the training views' pixels. Nothing constrains a Gaussian's
-shape below that footprint: a splat fitted as a sub-pixel point is, to the photos, a blob of
+A 3D Gaussian splatting model is fitted through a low-pass dilation of 0.3 px^2 added to
+every projected covariance (the reference implementation of Kerbl et al. 2023; the
+screen-space low-pass filter of EWA splatting, Zwicker et al. 2001), in the training views'
+pixels. Nothing constrains a Gaussian's shape below that footprint: a splat fitted as a sub-pixel point is, to the photos, a blob of
 variance 0.3 px^2. Rendered with the same 0.3 px^2 at 4x the training size, the blob shrinks 16x
-in area and the image breaks into dots and dark gaps (Yu et al. 2024, "Mip-Splatting", Sec. 1,
-Fig. 1 "zoom-in"). Mip-Splatting's cure is to train with a 3D filter; this is the render-time
+in area and the image breaks into dots and dark gaps (the zoom-in artefact of Yu et al. 2024,
+"Mip-Splatting"). Mip-Splatting's cure is to train with a 3D filter; this is the render-time
 half of it that needs no retraining: the dilation is held fixed in world units instead of in
 output pixels. A training camera at depth z with focal f samples the scene every z / f; the
 finest sampling of Gaussian i over the training views is T_i (Mip-Splatting Eq. 8,
