@@ -252,8 +252,9 @@ def test_overrides_are_typed_and_validated():
     assert "coarse-to-fine" in field_help(PlenoxelConfig)["resolutions"]
 
 
-def test_rollback_after_nan_in_a_real_run(tmp_path):
-    from recon.train.stage import train
+def toy_workspace(tmp_path, poison_steps):
+    """A workspace of a tiny Blender scene, the toy method registered with its loss poisoned
+    on `poison_steps`, and a 20-step TrainConfig that checkpoints every step."""
     from recon.workspace import Workspace
     from tests.conftest import make_blender_dataset, recon_cli
 
@@ -263,14 +264,20 @@ def test_rollback_after_nan_in_a_real_run(tmp_path):
         MethodSpec(
             name="toy",
             config_cls=ToyConfig,
-            build=lambda cfg, scene: Toy(poison_steps={5}),
+            build=lambda cfg, scene: Toy(poison_steps=poison_steps),
             presets={"fast": {}},
         )
     )
-    ws = Workspace.open(tmp_path / "ws")
     cfg = TrainConfig(
         method="toy", steps=20, checkpoint_every_s=0.0, eval_views=1, eval_every_s=0.0
     )
+    return Workspace.open(tmp_path / "ws"), cfg
+
+
+def test_rollback_after_nan_in_a_real_run(tmp_path):
+    from recon.train.stage import train
+
+    ws, cfg = toy_workspace(tmp_path, poison_steps={5})
     summary = train(ws, "toy", cfg, [], resume=False, force=False, log_fn=lambda *_: None)
     assert summary["steps"] == 20 and summary["status"] == "done"
     log = [json.loads(ln) for ln in ws.log_jsonl("toy").read_text().splitlines()]
@@ -284,23 +291,8 @@ def test_rollback_after_nan_in_a_real_run(tmp_path):
 
 def test_a_run_that_keeps_failing_says_so_in_run_json_and_its_log(tmp_path):
     from recon.train.stage import MAX_ROLLBACKS, train
-    from recon.workspace import Workspace
-    from tests.conftest import make_blender_dataset, recon_cli
 
-    data = make_blender_dataset(tmp_path / "d")
-    recon_cli("sfm", "--from-transforms", str(data), "-w", str(tmp_path / "ws"))
-    register(
-        MethodSpec(
-            name="toy",
-            config_cls=ToyConfig,
-            build=lambda cfg, scene: Toy(poison_steps=range(3, 100)),
-            presets={"fast": {}},
-        )
-    )
-    ws = Workspace.open(tmp_path / "ws")
-    cfg = TrainConfig(
-        method="toy", steps=20, checkpoint_every_s=0.0, eval_views=1, eval_every_s=0.0
-    )
+    ws, cfg = toy_workspace(tmp_path, poison_steps=range(3, 100))
     with pytest.raises(FloatingPointError):
         train(ws, "toy", cfg, [], resume=False, force=False, log_fn=lambda *_: None)
     doc = json.loads(ws.run_json("toy").read_text())

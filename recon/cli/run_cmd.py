@@ -38,19 +38,23 @@ def stage_commands(
     return stages
 
 
-def is_current(ws_root: Path, key: str, photos: Path | None) -> bool:
-    """The workspace records stage `key` as done and fresh (and the sfm stage as made from
-    `photos`)."""
+def current_stages(ws_root: Path, photos: Path | None) -> set[str]:
+    """The stages the workspace records as done and fresh (the sfm stage only if made from
+    `photos`). One `status()`, which hashes every recorded input: it holds until a stage runs,
+    and after that `recon run` reruns everything anyway."""
     if not (ws_root / Workspace.JSON_NAME).exists():
-        return False
+        return set()
     ws = Workspace.open(ws_root)
-    state = ws.status().get(key)
-    if state is None or state["state"] != "done":
-        return False
-    if key == "sfm" and photos is not None:
-        made_from = {ws.resolve(label).resolve() for label in state.get("inputs", {})}
-        return photos.resolve() in made_from
-    return True
+    current = set()
+    for key, state in ws.status().items():
+        if state["state"] != "done":
+            continue
+        if key == "sfm" and photos is not None:
+            made_from = {ws.resolve(label).resolve() for label in state.get("inputs", {})}
+            if photos.resolve() not in made_from:
+                continue
+        current.add(key)
+    return current
 
 
 @click.command()
@@ -113,8 +117,9 @@ def command(
     ]
     stages = stage_commands(photos, root, method, run, time_budget, orbit_frames, eval_args)
     done, code, rerun = [], 0, force
+    current = set() if force else current_stages(root, photos)
     for key, args in stages:
-        if not rerun and is_current(root, key, photos):
+        if not rerun and key in current:
             done.append({"stage": key, "ran": False})
             if not as_json:
                 click.echo(f"run: {key} is done and fresh: skipped", err=True)
