@@ -208,6 +208,7 @@ def train_and_eval(
     downscale: int,
     device: str,
     preset: str = "auto",
+    score: bool = True,
 ) -> dict:
     run = f"{method}-{'' if preset == 'auto' else preset + '-'}{budget:g}s"
     t0 = time.perf_counter()
@@ -217,10 +218,13 @@ def train_and_eval(
         "--eval-views", "25", "--eval-max-side", str(eval_max_side), "--threads", "2", "--preset", preset,
     )  # fmt: skip
     train_s = time.perf_counter() - t0
-    ev = recon("eval", "-w", str(ws), "--run", run, "--downscale", str(downscale))
     doc = json.loads((ws / "runs" / run / "run.json").read_text())
-    metrics = {**ev[run]["mean"], "size": ev[run]["resolution"], "views": ev[run]["views"]}
     psnrs = heldout_psnrs(ws / "runs" / run / "log.jsonl")
+    if score:
+        ev = recon("eval", "-w", str(ws), "--run", run, "--downscale", str(downscale))
+        metrics = {**ev[run]["mean"], "size": ev[run]["resolution"], "views": ev[run]["views"]}
+    else:  # the run's own last held-out evaluation (lego: the same 25 views at the same size)
+        metrics = {"psnr": psnrs[-1][1] if psnrs else None, "source": "heldout_end"}
     steps, wall = doc.get("steps", 0), doc.get("train_wall_s", 0.0)
     return {
         "scene": ws.name,
@@ -259,6 +263,28 @@ def cuda_tests(select: str) -> dict:
         "summary": lines[-1] if lines else "",
         "tail": lines[-40:],
     }
+
+
+def profile(ws: Path, method: str, device: str, result: dict, save) -> None:
+    """`pipelines/gpu_profile.py` on `ws` (where a training step's time goes), into
+    result["profiles"][method]; a failure is recorded, not raised."""
+    out = WORK / f"profile-{method}.json"
+    warmup = {"ngp": 320, "3dgs": 1500}.get(method, 200)  # past occupancy warm-up, densified
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "pipelines" / "gpu_profile.py"), "-w", str(ws)]
+        + ["--method", method, "--device", device, "--warmup", str(warmup), "--out", str(out)],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=child_env(),
+        cwd=ROOT,
+    )
+    doc = json.loads(out.read_text()) if proc.returncode == 0 else {"error": proc.stderr[-2000:]}
+    result.setdefault("profiles", {})[method] = doc
+    log(
+        f"profiled {method}: {doc.get('wall_ms_per_step')} ms a step, {doc.get('kernel_ms_per_step')} ms of kernels"
+    )
+    save()
 
 
 def device_info() -> dict:
@@ -303,7 +329,7 @@ def main() -> int:
     ap.add_argument("--wheels", type=Path, default=ROOT / ".gpu-wheels")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--budget", type=float, default=120.0, help="seconds per lego-400 run")
-    ap.add_argument("--fox-budget", type=float, default=180.0)
+    ap.add_argument("--fox-budget", type=float, default=180.0, help="0: no fox run")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--serial", action="store_true", help="one run at a time (exclusive timings)")
     ap.add_argument(
@@ -311,6 +337,16 @@ def main() -> int:
     )
     ap.add_argument(
         "--tests", action="store_true", help="also run tests/test_cuda.py (beside the 3dgs runs)"
+    )
+    ap.add_argument(
+        "--heldout-only",
+        action="store_true",
+        help="lego: no `recon eval`, the run's last held-out evaluation (the same 25 views at 400 px)",
+    )
+    ap.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile ngp's and 3dgs's training steps on lego (pipelines/gpu_profile.py)",
     )
     ap.add_argument(
         "--device", default="cuda", choices=("cuda", "cpu"), help="cpu: a rehearsal without gsplat"
@@ -372,63 +408,79 @@ def main() -> int:
     result["concurrent_runs"] = not args.serial
     dev = args.device
     methods = [m for m in methods if m in METHODS]
-    with ThreadPoolExecutor(max_workers=1 if args.serial else 12) as pool:
+    fox_too = "3dgs" in methods and args.fox_budget > 0
+    score = not args.heldout_only
+    builder = ThreadPoolExecutor(max_workers=1)  # gsplat's build is no run: never queued behind one
+    with builder, ThreadPoolExecutor(max_workers=1 if args.serial else 12) as pool:
         gsplat = "3dgs" in methods and dev == "cuda"
-        compiling = pool.submit(compile_gsplat) if gsplat else None
+        compiling = builder.submit(compile_gsplat) if gsplat else None
         lego, fox = WORK / "lego", WORK / "fox"
         fox_import = None
-        if "3dgs" in methods:
+        if fox_too:
             fox_src = str(args.data / "fox")
             fox_import = pool.submit(recon, "sfm", "--from-transforms", fox_src, "-w", str(fox))
         lego_src = lego_subset(args.data / "nerf_synthetic_lego_400", WORK / "lego_data")
         recon("sfm", "--from-transforms", str(lego_src), "-w", str(lego))
         log("lego-400 imported")
         phase_a = [
-            pool.submit(record, train_and_eval, lego, m, args.budget, 800, 1, dev)
+            pool.submit(record, train_and_eval, lego, m, args.budget, 800, 1, dev, "auto", score)
             for m in methods
             if m not in TARGET_METHODS
         ]
         tests = None
         if args.tests and dev == "cuda":
             tests = pool.submit(cuda_tests, "not 3dgs")
-        if compiling is not None:
-            result["gsplat_compile"] = compiling.result()
-            log(f"gsplat compiled: {result['gsplat_compile']}")
-            save()
-        if fox_import is not None:
-            fox_import.result()
-            log("fox imported")
         for job in phase_a:
             job.result()
         if tests is not None:
             result["cuda_tests"] = [tests.result()]
             log(f"tests/test_cuda.py -k 'not 3dgs': {result['cuda_tests'][0]['summary']}")
             save()
+        log("phase 2: the target runs")
+        # --serial profiles each method just before its run; otherwise after all runs, alone
+        profiles = [m for m in ("ngp", "3dgs") if args.profile and m in methods]
+        profiled = lambda m: pool.submit(profile, lego, m, dev, result, save)
+        phase_b = []
+        if "ngp" in methods:
+            if args.serial and "ngp" in profiles:
+                phase_b.append(profiled("ngp"))
+            phase_b.append(
+                pool.submit(
+                    record, train_and_eval, lego, "ngp", args.budget, 800, 1, dev, "auto", score
+                )
+            )
+        if compiling is not None:
+            result["gsplat_compile"] = compiling.result()
+            log(f"gsplat compiled: {result['gsplat_compile']}")
+            save()
         gsplat_ok = compiling is None or result["gsplat_compile"]["ok"]
         if "3dgs" in methods and not gsplat_ok:
             result["errors"].append("gsplat did not compile: " + result["gsplat_compile"]["error"])
-        log("phase 2: the target runs")
-        phase_b = []
-        if "ngp" in methods:
-            phase_b.append(
-                pool.submit(record, train_and_eval, lego, "ngp", args.budget, 800, 1, dev)
-            )
+            profiles = [m for m in profiles if m != "3dgs"]
+        if fox_import is not None:
+            fox_import.result()
+            log("fox imported")
         if "3dgs" in methods and gsplat_ok:
-            for ws, budget, side, k in (
-                (fox, args.fox_budget, 480, 4),
-                (lego, args.budget, 800, 1),
-            ):
-                job = (train_and_eval, ws, "3dgs", budget, side, k, dev, "auto")
+            if args.serial and "3dgs" in profiles:
+                phase_b.append(profiled("3dgs"))
+            scenes = [(lego, args.budget, 800, 1)]
+            if fox_too:
+                scenes.insert(0, (fox, args.fox_budget, 480, 4))
+            for ws, budget, side, k in scenes:
+                job = (train_and_eval, ws, "3dgs", budget, side, k, dev, "auto", score or ws == fox)
                 phase_b.append(pool.submit(record, *job))
         for job in phase_b:
             job.result()
+        if not args.serial:
+            for m in profiles:
+                profiled(m).result()
         if "3dgs" in methods and gsplat_ok:
             extra = [
                 pool.submit(
                     record, train_and_eval, fox, "3dgs", args.fox_budget, 480, 4, dev, preset
                 )
                 for preset in args.also_presets.split(",")
-                if preset
+                if preset and fox_too
             ]
             if tests is not None:
                 result["cuda_tests"].append(pool.submit(cuda_tests, "3dgs").result())
