@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
 from recon.models.registry import method_spec
@@ -60,7 +61,13 @@ def profile_steps(model, data, device: torch.device, first: int, steps: int) -> 
     wall = time.perf_counter() - t0
     averages = prof.key_averages()
     count = lambda names: sum(e.count for e in averages if e.key in names) / steps
-    kernels = [e for e in averages if device_time_us(e) > 0 and not e.key.startswith("aten::")]
+    # the kernels themselves: ops and labelled regions (`record_function`) also carry the
+    # device time of what they launched, and would count it twice
+    kernels = [
+        e
+        for e in averages
+        if e.device_type == DeviceType.CUDA and not getattr(e, "is_user_annotation", False)
+    ]
     top_ops = sorted(
         (e for e in averages if e.key.startswith("aten::")),
         key=lambda e: e.self_cpu_time_total,

@@ -53,3 +53,29 @@ def test_heldout_psnr_at_60_s_and_at_the_end(tmp_path):
     assert gpu_check.psnr_at(psnrs, 60) == {"wall_s": 60.4, "psnr": 29.5}
     assert gpu_check.psnr_at(psnrs, psnrs[-1][0]) == {"wall_s": 118.0, "psnr": 31.25}
     assert gpu_check.psnr_at(psnrs, 200) is None
+
+
+def test_profile_counts_a_steps_ops_on_a_cpu(tmp_path):
+    """pipelines/gpu_profile.py (`gpu_check.py --profile`) on a CPU: the step's ops and their
+    host times (no device activity there)."""
+    from tests.conftest import sphere_workspace
+
+    ws = sphere_workspace(tmp_path, n_train=4, size=24)
+    out = tmp_path / "profile.json"
+    proc = subprocess.run(
+        [sys.executable, "pipelines/gpu_profile.py", "-w", str(ws), "--method", "ngp"]
+        + ["--device", "cpu", "--warmup", "4", "--steps", "3", "--out", str(out)],
+        check=False,
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc["method"] == "ngp" and doc["preset"] == "fast" and doc["image_size"] == [24, 24]
+    assert doc["wall_ms_per_step"] > 0 and doc["aten_ops_per_step"] > 50
+    assert doc["kernel_ms_per_step"] == 0 and doc["launches_per_step"] == 0
+    assert (
+        "aten::mm" in doc["top_ops_cpu_ms_per_step"]
+        or "aten::addmm" in doc["top_ops_cpu_ms_per_step"]
+    )
