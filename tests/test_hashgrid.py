@@ -9,6 +9,7 @@ import torch
 
 from recon.fields.hashgrid import (
     HashGrid,
+    gather_rows,
     growth_factor,
     hash_encode,
     hash_encode_torch,
@@ -169,3 +170,18 @@ def test_empty_batch(small_grid):
     assert out.shape == (0, 12)
     out.sum().backward()
     assert (table.grad == 0).all()
+
+
+def test_gather_rows_is_advanced_indexing_values_and_gradients():
+    """The gather's values and table gradient (repeated rows add up) equal table[rows]'s."""
+    gen = torch.Generator().manual_seed(3)
+    table = torch.randn(50, 2, dtype=torch.float64, generator=gen, requires_grad=True)
+    rows = torch.randint(0, 50, (7, 3, 8), generator=gen)  # 168 rows of 50: many repeats
+    upstream = torch.randn(7, 3, 8, 2, dtype=torch.float64, generator=gen)
+    ours = gather_rows(table, rows)
+    (g_ours,) = torch.autograd.grad((ours * upstream).sum(), table)
+    ref = table[rows]
+    (g_ref,) = torch.autograd.grad((ref * upstream).sum(), table)
+    assert ours.shape == (7, 3, 8, 2) and torch.equal(ours, ref)
+    assert torch.allclose(g_ours, g_ref, rtol=0, atol=1e-12)
+    assert gather_rows(table, rows[:0]).shape == (0, 3, 8, 2)

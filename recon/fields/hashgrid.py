@@ -112,11 +112,19 @@ def corner_indices_and_weights(x: Tensor, layout: dict[str, list[int]]) -> tuple
     return idx + lv.offset[:, None], w
 
 
+def gather_rows(table: Tensor, rows: Tensor) -> Tensor:
+    """table[rows]: rows (...) int64 of table (E, F) -> (..., F), through `index_select`, whose
+    backward adds into the table's gradient (`index_add_`: atomic adds on a GPU) where advanced
+    indexing's backward first sorts every index (an Instant-NGP step on an H200 spent 9.6 of
+    its 28 ms in that backward and its sorts)."""
+    return table.index_select(0, rows.reshape(-1)).view(*rows.shape, table.shape[-1])
+
+
 def hash_encode_torch(x: Tensor, table: Tensor, layout: dict[str, list[int]]) -> Tensor:
     """Pure-torch encoding: sum_c w_c table[row_c] per level. x (N, 3), table (E, F) -> (N, L F).
     Differentiable in both table and x (the reference twin, and the path off CPU)."""
     idx, w = corner_indices_and_weights(x, layout)
-    feats = table[idx]  # (N, L, 8, F)
+    feats = gather_rows(table, idx)  # (N, L, 8, F)
     return (feats * w[..., None].to(table.dtype)).sum(dim=-2).flatten(start_dim=1)
 
 

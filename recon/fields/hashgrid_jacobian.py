@@ -33,6 +33,7 @@ from recon.fields.hashgrid import (
     _layout_arrays,
     _level,
     corner_indices_and_weights,
+    gather_rows,
     hash_encode_torch,
     level_tensors,
 )
@@ -168,7 +169,7 @@ def hash_jacobian_torch(x: Tensor, table: Tensor, layout: dict[str, list[int]]) 
         -1,
     )  # (N, L, 8, 3)
     inside = ((x > 0) & (x < 1)).all(-1).to(x.dtype)[:, None, None, None]
-    jac = torch.einsum("nlcf,nlca->nlfa", table[idx], dw * inside)
+    jac = torch.einsum("nlcf,nlca->nlfa", gather_rows(table, idx), dw * inside)
     return jac.flatten(1, 2)
 
 
