@@ -109,3 +109,36 @@ def camera_summary(model: pycolmap.Reconstruction) -> list[dict]:
 
 def registered_names(model: pycolmap.Reconstruction) -> set[str]:
     return {im.name for im in model.images.values() if im.has_pose}
+
+
+def pair_parallax(database: Path, min_inliers: int) -> np.ndarray:
+    """Degrees of parallax (K,) of each verified image pair with at least `min_inliers` inlier
+    matches: the median triangulation angle of its inliers under its two-view pose, computed as
+    COLMAP's mapper does for a candidate initial pair (`estimate_two_view_geometry_pose`; the
+    database keeps the pair's epipolar geometry, not that angle). The mapper starts only from a
+    pair above its `init_min_tri_angle`. A forward-facing capture has a few degrees on every
+    pair (llff_flower: at most 3.8 over 561 pairs); an object walked around has tens (fox: 512
+    of its 889 pairs above 16)."""
+    db = pycolmap.Database.open(database)
+    try:
+        cameras = {c.camera_id: c for c in db.read_all_cameras()}
+        camera_of = {im.image_id: im.camera_id for im in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        keypoints: dict[int, np.ndarray] = {}
+        angles = []
+        for pair_id, geometry in zip(pair_ids, geometries):
+            if len(geometry.inlier_matches) < min_inliers:
+                continue
+            ids = pycolmap.pair_id_to_image_pair(pair_id)
+            for i in ids:
+                if i not in keypoints:
+                    keypoints[i] = db.read_keypoints(i)[:, :2].astype(np.float64)
+            a, b = ids
+            cam_a, cam_b = cameras[camera_of[a]], cameras[camera_of[b]]
+            if pycolmap.estimate_two_view_geometry_pose(
+                cam_a, keypoints[a], cam_b, keypoints[b], geometry
+            ):
+                angles.append(np.degrees(geometry.tri_angle))
+    finally:
+        db.close()
+    return np.asarray(angles, dtype=np.float64)

@@ -76,6 +76,7 @@ def attempt_summary(index: int, attempt: Attempt, num_images: int) -> dict:
         "points3d": attempt.best.num_points3D() if attempt.models else 0,
         "retried_images": attempt.retried,
         "pairs_matched": attempt.pairs_matched,
+        "max_pair_parallax_deg": attempt.max_pair_parallax,
         "models": models_summary(attempt),
         "registered_all": attempt.registered == num_images,
         **attempt.timer.as_dict(),

@@ -206,6 +206,13 @@ def run_attempt(
     with attempt.timer("matching"):
         attempt.pairs_matched = len(pairs)
         steps.match_pairs(db, directory, pairs, options, config.seed, threads, report)
+    if previous is None and (lower := low_parallax(options)) is not None:
+        with attempt.timer("parallax"):
+            angles = diagnose.pair_parallax(db, options.init_min_num_inliers)
+        attempt.max_pair_parallax = float(angles.max()) if len(angles) else None
+        if len(angles) and angles.max() < options.init_min_tri_angle:
+            # no pair could start the model: map with the lower angle now, not after a failure
+            options = attempt.options = replace(lower, name=f"{lower.name} (pairs' parallax)")
     with attempt.timer("mapping"):
         attempt.models = steps.map_images(
             db,
@@ -236,7 +243,10 @@ def run_ladder(
         attempts.append(attempt)
         if attempt.registered == len(photos.photos):
             break
-        if attempt.registered < min(3, len(photos.photos)) and (lower := low_parallax(options)):
+        if attempt.options.init_min_tri_angle < options.init_min_tri_angle:  # lowered up front
+            angle = attempt.options.init_min_tri_angle
+            ladder = [replace(o, init_min_tri_angle=angle) for o in ladder]
+        elif attempt.registered < min(3, len(photos.photos)) and (lower := low_parallax(options)):
             # no model at all: first the same matches with less parallax for the initial
             # pair, then the ladder (which keeps the lower angle)
             ladder = [lower] + [

@@ -331,6 +331,7 @@ class Attempt:
     timer: PhaseTimer
     retried: list[str] = field(default_factory=list)  # photos a retry re-extracted / re-matched
     pairs_matched: int = 0  # image pairs sent to the matcher (already matched pairs are skipped)
+    max_pair_parallax: float | None = None  # degrees, the first attempt's (`pair_parallax`)
 
     @property
     def best(self) -> pycolmap.Reconstruction | None:
