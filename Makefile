@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: install test lint docs demo bench sweep browser clean gpu-wheels gpu-check
+.PHONY: install test test-all lint docs demo bench sweep browser clean gpu-wheels gpu-check
 
 install: $(BIN)/recon
 
@@ -15,9 +15,15 @@ $(BIN)/recon: pyproject.toml
 	$(BIN)/pip install -q torch==2.13.0 -e '.[test]'
 	@touch $@
 
-# two xdist workers on two cores: one thread each, or OpenMP oversubscription costs 10-40x
+# two xdist workers on two cores: one thread each, or OpenMP oversubscription costs 10-40x.
+# `make test`: the fast tier (every unit test; not the tests marked slow: end to end on real
+# data, whole training runs); `make test-all`: everything, what CI runs.
+PYTEST := OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile
 test: lint docs
-	OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile tests
+	$(PYTEST) -m "not slow" tests
+
+test-all: lint docs
+	$(PYTEST) tests
 
 # the docs site (mkdocs.yml) into site/; --strict: a broken link or a missing page fails. The
 # reference pages are made from the code at build time (docs/hooks/reference.py). The variable

@@ -247,11 +247,11 @@ def train_and_eval(
 
 
 def cuda_tests(select: str) -> dict:
-    """tests/test_cuda.py's tests matching `select` (pytest -k): every method trains, renders
+    """tests/e2e/test_cuda.py's tests matching `select` (pytest -k): every method trains, renders
     and resumes on CUDA. Its exit status and last lines."""
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", select]
-        + ["tests/test_cuda.py"],
+        + ["tests/e2e/test_cuda.py"],
         check=False,
         capture_output=True,
         text=True,
@@ -338,7 +338,7 @@ def main() -> int:
         "--also-presets", default="", help="3dgs runs on fox with these presets too (e.g. fast)"
     )
     ap.add_argument(
-        "--tests", action="store_true", help="also run tests/test_cuda.py (beside the 3dgs runs)"
+        "--tests", action="store_true", help="also run tests/e2e/test_cuda.py (beside the 3dgs runs)"
     )
     ap.add_argument(
         "--heldout-only",
@@ -441,7 +441,7 @@ def main() -> int:
             job.result()
         if tests is not None:
             result["cuda_tests"] = [tests.result()]
-            log(f"tests/test_cuda.py -k 'not 3dgs': {result['cuda_tests'][0]['summary']}")
+            log(f"tests/e2e/test_cuda.py -k 'not 3dgs': {result['cuda_tests'][0]['summary']}")
             save()
         log("phase 2: the target runs")
         profiles = [m for m in ("ngp", "3dgs") if args.profile and m in methods]
@@ -487,7 +487,7 @@ def main() -> int:
             ]
             if tests is not None:
                 result["cuda_tests"].append(solo.submit(cuda_tests, "3dgs").result())
-                log(f"tests/test_cuda.py -k 3dgs: {result['cuda_tests'][1]['summary']}")
+                log(f"tests/e2e/test_cuda.py -k 3dgs: {result['cuda_tests'][1]['summary']}")
                 save()
             for job in extra:
                 job.result()

@@ -2,7 +2,7 @@
 
 Every fast path that has a CPU kernel dispatches through `uses_cpu_kernels`, so one switch
 sends all of them to the torch twins: the path every non-CPU device takes. The device-leak test
-(`tests/test_device_clean.py`) turns it off to run a GPU's code path on the CPU and watch it
+(`tests/models/test_device_clean.py`) turns it off to run a GPU's code path on the CPU and watch it
 for host round trips.
 
 Below every layer of the package: it imports nothing from recon.

@@ -1,5 +1,5 @@
 """The spherical-harmonic basis of one direction inside numba kernels: the twin of
-`sh.sh_basis` (same ordering, signs and constants), checked against it in tests/test_sh.py."""
+`sh.sh_basis` (same ordering, signs and constants), checked against it in tests/fields/test_sh.py."""
 
 from __future__ import annotations
 

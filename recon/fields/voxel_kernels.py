@@ -1,7 +1,7 @@
 """Fast CPU path for the sparse voxel grid's trilinear lookup (numba), with a custom backward.
 
 The slow, obviously-correct twin is `SparseVoxelGrid.query_reference` (torch gather + autograd);
-`tests/test_plenoxel.py` compares both on values and gradients.
+`tests/models/test_plenoxel.py` compares both on values and gradients.
 
 Forward:  out[n] = sum_c w[n, c] * data[rows[n, c]]          (rows < 0 contribute nothing)
 Backward: grad_data[rows[n, c]] += w[n, c] * grad_out[n]       (serial scatter: no atomics,

@@ -4,7 +4,7 @@ rasterizer (forward and backward in CUDA, memory linear in the tile intersection
 recon's conventions mapped onto gsplat's. The numba kernels stay the CPU path.
 
 The conventions, each checked against gsplat's pure-torch reference (`gsplat.cuda._torch_impl`)
-and recon's own rasterizer by tests/test_gaussians_gsplat_glue.py:
+and recon's own rasterizer by tests/gaussians/test_gsplat_glue.py:
 - view matrix: gsplat's `viewmats` are world-to-camera 4x4 in OpenCV axes (x right, y down,
   z forward), i.e. recon's `cam_from_world`;
 - intrinsics: the same K; both put pixel centres at +0.5 (means2d = K x / z, pixel (i, j)

@@ -151,7 +151,7 @@ class Model(nn.Module):
     code stays a plain loop; it returns scalars for the log (at least "loss"): Python numbers
     where the host already knows them (a tensor's shape), else detached 0-d tensors on the
     model's device, which the loop reads (one host sync) only on the steps it logs. A step on a
-    GPU makes no host round trip of its own (`tests/test_device_clean.py`).
+    GPU makes no host round trip of its own (`tests/models/test_device_clean.py`).
     `render` returns, for ONE camera, "rgb" (H, W, 3), "depth" (H, W) as z-depth along the
     optical axis in normalized units, and "acc" (H, W) accumulated opacity.
 

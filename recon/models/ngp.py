@@ -324,7 +324,7 @@ class NGPModel(Model):
         (colour and compositing see only the samples with T >= eps), composited on
         `background` (R, 3) (None: `background_colour`).
         -> (VolumeRender, and the rendered packed samples' ray_indices, t_starts, t_ends).
-        Two ways to the same samples, values and gradients (the twin in `tests/test_ngp.py`),
+        Two ways to the same samples, values and gradients (the twin in `tests/models/test_ngp.py`),
         chosen by the fraction of evaluated densities the previous step kept: while most survive
         (early in training), ONE density pass with gradients over all of them, whose values also
         decide termination; once termination drops many, as Instant-NGP's training kernel does

@@ -6,7 +6,7 @@ through autograd); `render_lattice` also colours and composites them in the same
 render stores no sample at all.
 
 The two-stage path they replace (`PlenoxelModel._march_then_terminate`, also the path off the
-CPU and the twin in `tests/test_plenoxel.py`) marches every occupied sample of every ray,
+CPU and the twin in `tests/models/test_plenoxel.py`) marches every occupied sample of every ray,
 evaluates the density of all of them and only then drops those behind T < eps (early ray
 termination, Levoy 1990, "Efficient Ray Tracing of Volume Data", sec. 4): on the trained lego
 lattice a 200 x 200 view marches 1.28 M occupied samples and keeps 0.38 M. Both keep sample i

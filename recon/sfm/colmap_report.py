@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 def determinism_note(num_threads: int) -> str:
     """What a fixed seed does and does not pin down, as measured on 12 fox photos (4 runs
-    each; tests/test_sfm_colmap.py checks the num_threads=1 case)."""
+    each; tests/sfm/test_colmap_sfm.py checks the num_threads=1 case)."""
     note = (
         "Feature extraction is bit-identical between runs at any thread count. With more than "
         "one thread, geometric verification is not: some pairs get a different inlier count "

@@ -13,9 +13,10 @@ class TrainConfig:
     method: str  # nerf | ngp | plenoxel | 3dgs
     preset: str = opt(
         "auto",
-        "auto: paper on a CUDA device, fast elsewhere; fast: sized for a CPU; paper: the "
-        "paper's settings (GPU-sized; its step schedules fitted to a budget's planned steps); a "
-        "method may have more (plenoxel: lean), listed by --list-options",
+        "auto: gpu (3dgs) or paper on a CUDA device, fast elsewhere; fast: sized for a CPU; "
+        "paper: the paper's settings (GPU-sized; its step schedules fitted to a budget's planned "
+        "steps); gpu (3dgs): paper with the real-capture options of fast; a method may have more "
+        "(plenoxel: lean), listed by --list-options",
     )
     steps: int = opt(0, "stop after this many steps (0 = no step limit)")
     time_budget_s: float = opt(
@@ -100,20 +101,21 @@ def apply_overrides(cls, base: dict, overrides: list[str]) -> dict:
     return out
 
 
-AUTO_PRESETS = {"cuda": "paper"}  # device type -> the preset "auto" means there
-CPU_PRESET = "fast"  # what "auto" means elsewhere, and where a method lacks the device's preset
+AUTO_PRESETS = {
+    "cuda": ("gpu", "paper")
+}  # device type -> what "auto" means there, the first a method has
+CPU_PRESET = "fast"  # what "auto" means elsewhere, and where a method has none of the device's
 
 
 def resolve_preset(preset: str, presets: dict, device_type: str) -> tuple[str, str]:
-    """The preset a run uses and why: `preset` itself unless "auto", which is the method's
-    reference settings on a CUDA device (its "paper" preset, sized for a GPU) and the CPU's
-    "fast" one elsewhere. Example: ("auto", 3dgs's presets, "cuda") -> ("paper", "auto: paper
-    on a cuda device"); on "cpu" -> ("fast", "auto: fast on a cpu device")."""
+    """The preset a run uses and why: `preset` itself unless "auto", which on a CUDA device is
+    the method's "gpu" preset (its reference settings with what real captures need, sized for
+    a GPU) or else its "paper" one, and the CPU's "fast" one elsewhere. Example: ("auto", 3dgs's
+    presets, "cuda") -> ("gpu", "auto: gpu on a cuda device"); ngp's -> "paper"; on "cpu" ->
+    ("fast", "auto: fast on a cpu device")."""
     if preset != "auto":
         return preset, f"--preset {preset}"
-    chosen = AUTO_PRESETS.get(device_type, CPU_PRESET)
-    if chosen not in presets:
-        chosen = CPU_PRESET
+    chosen = next((p for p in AUTO_PRESETS.get(device_type, ()) if p in presets), CPU_PRESET)
     return chosen, f"auto: {chosen} on a {device_type} device"
 
 

@@ -3,7 +3,7 @@ cone-growing) step and emit ONLY the intervals whose midpoint falls in an occupi
 without materialising the dense list of all marching intervals first.
 
 The arithmetic mirrors `occupancy.march_intervals`, `contraction.scene_to_unit_cube` and
-`occupancy.cells_of` step for step; `tests/test_march_kernels.py` checks that both give the
+`occupancy.cells_of` step for step; `tests/volrend/test_march_kernels.py` checks that both give the
 same packed samples.
 """
 

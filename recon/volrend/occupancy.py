@@ -191,7 +191,7 @@ def march_terminated(
     and how many densities were evaluated; when `sigma` returns (sigma, features) (e.g. a
     field's geometry features, so the caller need not evaluate the kept samples twice) the
     kept samples' (sigmas, features) come between the two. The same samples as one march and
-    `terminated_mask` over all of it (the twin in `tests/test_occupancy.py`).
+    `terminated_mask` over all of it (the twin in `tests/volrend/test_occupancy.py`).
     Example: a trained Instant-NGP fox model marches 335 samples a ray and keeps 23: with
     first = 32 a held-out view renders 4.5x faster, the same pixels to the bit."""
     kept: list[tuple[Tensor, ...]] = []

@@ -1,6 +1,6 @@
 """Two `recon train` processes on one workspace : different run names both finish and
 both are recorded in workspace.json; a second writer of the same run fails fast on the run lock
-and leaves the first one's run alone. (The lock itself: tests/test_workspace.py.)"""
+and leaves the first one's run alone. (The lock itself: tests/workspace/test_workspace.py.)"""
 
 import json
 import os

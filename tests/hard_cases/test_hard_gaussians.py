@@ -3,7 +3,7 @@ rasterizer used in training), checked against the pure-torch twin on outputs and
 zero-norm quaternion, scales 1e-8 and 1e3 (covers the whole image), a centre on the camera
 plane, behind the camera, straddling and inside the near plane; 1 Gaussian; 10^6 Gaussians
 (projection only). The torch twin's own limits (conic at det ~1e-12 / 1e12, guard band, EWA vs
-autograd Jacobian) are in tests/test_gaussians_projection.py and test_gaussians_rasterize.py."""
+autograd Jacobian) are in tests/gaussians/test_projection.py and test_gaussians_rasterize.py."""
 
 import math
 

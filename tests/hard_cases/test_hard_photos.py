@@ -1,5 +1,5 @@
 """Bad photo folders. The validation layer (recon/sfm/photos.py) directly for the
-per-file cases not in tests/test_sfm_photos.py (a 1-pixel image, mixed sizes, textureless
+per-file cases not in tests/sfm/test_photos.py (a 1-pixel image, mixed sizes, textureless
 photos pass validation), and the real `recon sfm PHOTOS` for whole folders that cannot work:
 one error line, a non-zero exit, and no workspace left behind."""
 
@@ -32,7 +32,7 @@ def test_one_pixel_image_is_skipped_with_its_size(tmp_path):
 
 def test_mixed_sizes_and_textureless_photos_are_all_kept_with_their_own_sizes(tmp_path):
     """Validation does not judge texture or size consistency: SfM groups cameras by size
-    (tests/test_sfm_colmap.py::test_camera_groups_split_mixed_sizes) and reports textureless
+    (tests/sfm/test_colmap_sfm.py::test_camera_groups_split_mixed_sizes) and reports textureless
     photos by name (::test_blank_photos_raise_one_line_sfm_error)."""
     src = tmp_path / "photos"
     src.mkdir()
@@ -74,7 +74,7 @@ def test_a_folder_of_one_photo_and_its_duplicate_is_refused(tmp_path):
 
 
 # Each CLI call costs ~10-20 s of imports on a loaded 2-core machine: two folders only (the
-# empty folder and a missing one are in tests/test_sfm_photos.py at the validation layer).
+# empty folder and a missing one are in tests/sfm/test_photos.py at the validation layer).
 @pytest.mark.parametrize(
     "fill, message",
     [

@@ -1,5 +1,5 @@
 """Non-finite values in training (never a silent NaN model). A NaN loss is caught at
-once and a real run rolls back (tests/test_train_loop.py). Here: an update that writes Inf/NaN
+once and a real run rolls back (tests/train/test_loop.py). Here: an update that writes Inf/NaN
 into the PARAMETERS on a step whose loss was still finite - on the last step or right before a
 checkpoint nothing would read a loss again, so the poisoned model would be kept."""
 

@@ -1,4 +1,4 @@
-"""Volume-core hard cases not already in tests/test_volrend.py (opaque one-hot, sigma = 0,
+"""Volume-core hard cases not already in tests/volrend/test_volrend.py (opaque one-hot, sigma = 0,
 float64 gradcheck are there): 4,096+ samples without transmittance underflow to NaN,
 zero-length and enormous intervals, rays that miss the box or start inside it."""
 

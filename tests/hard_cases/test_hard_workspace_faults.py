@@ -1,7 +1,7 @@
 """Faults while writing a workspace: a read-only workspace directory and a disk that
 fills up mid-write. Each: one clear error line, a non-zero exit, the workspace byte-for-byte as
 it was and no temporary file left behind. (Missing/stale stage, newer schema, corrupt
-workspace.json and corrupt checkpoints are in tests/test_workspace.py, test_cli.py and
+workspace.json and corrupt checkpoints are in tests/workspace/test_workspace.py, test_cli.py and
 test_interruption.py.)"""
 
 import errno

@@ -1,0 +1,274 @@
+"""The gsplat glue (recon/gaussians/gsplat_glue.py) on a CPU: gsplat's pure-torch reference
+(`gsplat.cuda._torch_impl`) stands in for its CUDA kernels, and the projection, tile lists,
+image and gradients must agree with recon's own CPU path (numba) in float64, over a few hundred
+Gaussians and several cameras. gsplat's CUDA rasterizer lists its pixel-splat pairs with a CUDA
+op, so its stand-in here composites gsplat's tile lists with recon's own alpha compositing
+(`rasterize_torch.composite_tile_lists`). The CUDA kernels themselves run in
+tests/e2e/test_cuda.py, on a machine that has one."""
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from recon.cameras import Cameras
+from recon.cameras.look_at import look_at
+from recon.gaussians import gsplat_glue
+from recon.gaussians.projection import covariance_3d, project_gaussians
+from recon.gaussians.rasterize import rasterize_features
+from recon.gaussians.rasterize_torch import composite_tile_lists
+from recon.gaussians.render import composite_rgbd, project_splats
+
+torch_impl = pytest.importorskip(
+    "gsplat.cuda._torch_impl", reason="gsplat is not installed (pip install 'recon[cuda]')"
+)
+F64 = torch.float64
+
+
+def torch_project(
+    means, covars, quats, scales, viewmats, Ks, width, height, eps2d, near_plane, packed
+):
+    """`gsplat.fully_fused_projection`'s signature over its pure-torch twin."""
+    assert covars is None and not packed
+    covars, _ = torch_impl._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
+    return torch_impl._fully_fused_projection(
+        means, covars, viewmats, Ks, width, height, eps2d, near_plane
+    )
+
+
+def torch_rasterize(
+    means2d, conics, colors, opacities, width, height, tile, offsets, flatten_ids, absgrad
+):
+    """`gsplat.rasterize_to_pixels` for one image: gsplat's tile lists composited by recon's
+    compositing. Like gsplat's, it leaves sum_p |dL_p / d mu'| on `means2d.absgrad`."""
+    starts = torch.cat([offsets.flatten().long(), torch.tensor([len(flatten_ids)])])
+    sink = None
+    if absgrad:
+        sink = torch.zeros_like(means2d[0])
+        means2d.absgrad = sink[None]
+    image, T = composite_tile_lists(
+        means2d[0],
+        conics[0],
+        opacities[0],
+        colors[0],
+        starts,
+        flatten_ids.long(),
+        width,
+        height,
+        tile,
+        sink,
+    )
+    return image[None], (1 - T)[None, ..., None]
+
+
+@pytest.fixture
+def torch_gsplat(monkeypatch):
+    """The glue's gsplat entry points swapped for the pure-torch twins, and CPU tensors sent
+    through the glue as CUDA ones would be."""
+    monkeypatch.setattr(
+        gsplat_glue,
+        "OPS",
+        SimpleNamespace(
+            project=torch_project,
+            isect_tiles=torch_impl._isect_tiles,
+            isect_offset_encode=torch_impl._isect_offset_encode,
+            rasterize=torch_rasterize,
+        ),
+    )
+    monkeypatch.setattr(gsplat_glue, "uses_gsplat", lambda t: True)
+
+
+def cameras(n=3, W=64, H=48):
+    """n cameras on a ring around the origin, off-centre principal points."""
+    eyes = torch.tensor(
+        [[3.0 * math.cos(a), 3.0 * math.sin(a), 0.8] for a in torch.linspace(0, 2, n)], dtype=F64
+    )
+    cfw = look_at(eyes, torch.zeros(3, dtype=F64), torch.tensor([0.0, 0.0, 1.0], dtype=F64))
+    K = torch.tensor([[70.0, 0, 30.5], [0, 72.0, 25.25], [0, 0, 1]], dtype=F64)
+    wh = torch.full((n,), W), torch.full((n,), H)
+    return Cameras(K.expand(n, 3, 3).clone(), cfw, *wh)
+
+
+def random_gaussians(G=300, seed=0, degree=2, max_opacity=0.35):
+    """Opacities <= 0.35: the alpha >= 1/255 ellipse then lies inside recon's 3-sigma box, so
+    both rasterizers draw every pixel a splat reaches (recon's box truncates brighter splats at
+    3 sigma of the larger eigenvalue, gsplat's at 3.33 sigma per axis)."""
+    gen = torch.Generator().manual_seed(seed)
+    opacity = 0.05 + (max_opacity - 0.05) * torch.rand(G, generator=gen, dtype=F64)
+    return {
+        "means": (torch.rand(G, 3, generator=gen, dtype=F64) - 0.5) * 2.0,
+        "quats": torch.randn(G, 4, generator=gen, dtype=F64),
+        "log_scales": torch.log(0.01 + 0.12 * torch.rand(G, 3, generator=gen, dtype=F64)),
+        "opacity_logits": torch.log(opacity) - torch.log1p(-opacity),
+        "sh_dc": torch.randn(G, 1, 3, generator=gen, dtype=F64) * 0.5,
+        "sh_rest": torch.randn(G, (degree + 1) ** 2 - 1, 3, generator=gen, dtype=F64) * 0.2,
+    }
+
+
+@pytest.mark.parametrize("view", [0, 1, 2])
+def test_projection_matches_recon(torch_gsplat, view):
+    g, cam = random_gaussians(), cameras()[view]
+    W, H = int(cam.width[0]), int(cam.height[0])
+    args = (g["means"], g["quats"], g["log_scales"], cam.K[0], cam.cam_from_world[0], W, H)
+    means2d, conics, depths, radii = project_gaussians(*args)
+    g_means2d, g_conics, g_depths, g_radii = gsplat_glue.project(*args)
+    both = (radii > 0) & (g_radii > 0).all(-1)
+    assert both.sum() > 100
+    torch.testing.assert_close(g_means2d[both], means2d[both], rtol=1e-10, atol=1e-9)
+    torch.testing.assert_close(g_conics[both], conics[both], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(g_depths, depths, rtol=1e-12, atol=1e-12)
+    # gsplat's radii: 3.33 sigma per axis of recon's (dilated) 2D covariance
+    A, B, C = conics.unbind(-1)
+    det = A * C - B * B
+    sigma = torch.stack([C / det, A / det], -1).sqrt()
+    expected = torch.ceil(3.33 * sigma)
+    assert (g_radii[both] - expected[both]).abs().max() <= 1  # ceil at float32's 3.33
+    assert (g_radii[both] == expected[both]).double().mean() > 0.97
+    # culling: the same near plane; the screen test differs only by the boxes' sizes
+    near = g["means"] @ cam.cam_from_world[0, :3, :3].T + cam.cam_from_world[0, :3, 3]
+    behind = near[:, 2] <= 0.01
+    assert (g_radii[behind] == 0).all() and (radii[behind] == 0).all()
+    assert ((radii > 0) != (g_radii > 0).all(-1)).double().mean() < 0.03
+
+
+def test_tile_lists_hold_every_pair_that_draws_in_depth_order(torch_gsplat):
+    g, cam = random_gaussians(G=200), cameras()[0]
+    W, H = int(cam.width[0]), int(cam.height[0])
+    s = project_splats(g, cam, 0)
+    offsets, flatten_ids = gsplat_glue.intersections(s.means2d, s.radii_xy, s.depths, W, H)
+    tiles_x, tiles_y = gsplat_glue.tile_grid(W, H)
+    starts = torch.cat([offsets.flatten().long(), torch.tensor([len(flatten_ids)])])
+    # brute force: the splats with alpha >= 1/255 at some pixel of each tile
+    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    d = torch.stack([xs, ys], -1)[None] - s.means2d[:, None, None, :]  # (G, H, W, 2)
+    A, B, C = (s.conics[:, i, None, None] for i in range(3))
+    power = -0.5 * (A * d[..., 0] ** 2 + C * d[..., 1] ** 2) - B * d[..., 0] * d[..., 1]
+    alpha = s.opacities[:, None, None] * torch.exp(power)
+    draws = (alpha >= 1 / 255) & (s.radii > 0)[:, None, None]
+    for t in range(tiles_x * tiles_y):
+        ty, tx = divmod(t, tiles_x)
+        listed = flatten_ids[starts[t] : starts[t + 1]].long()
+        tile_draws = draws[:, ty * 16 : (ty + 1) * 16, tx * 16 : (tx + 1) * 16].flatten(1).any(1)
+        assert set(tile_draws.nonzero()[:, 0].tolist()) <= set(listed.tolist())
+        assert (s.depths[listed].diff() >= 0).all()
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_image_and_gradients_match_recons_rasterizer(torch_gsplat, monkeypatch, antialiased):
+    """Image, depth, alpha and the gradients of every parameter through the glue (gsplat's
+    projection and tile lists) against recon's numba path, for three cameras."""
+    cams = cameras()
+    for view in range(len(cams)):
+        params = {k: v.clone().requires_grad_() for k, v in random_gaussians(seed=view).items()}
+        out = composite_rgbd(
+            project_splats(params, cams[view], 2, 0.01, antialiased), torch.ones(3)
+        )
+        with monkeypatch.context() as m:  # recon's own CPU path
+            m.setattr(gsplat_glue, "uses_gsplat", lambda t: False)
+            ref_params = {k: v.detach().clone().requires_grad_() for k, v in params.items()}
+            ref_splats = project_splats(ref_params, cams[view], 2, 0.01, antialiased)
+            assert ref_splats.radii_xy is None
+            ref = composite_rgbd(ref_splats, torch.ones(3))
+        for key in ("rgb", "depth", "acc"):
+            torch.testing.assert_close(out[key], ref[key], rtol=1e-9, atol=1e-10)
+        assert ref["acc"].max() > 0.5
+        gen = torch.Generator().manual_seed(view)
+        weights = {k: torch.randn(v.shape, generator=gen, dtype=F64) for k, v in ref.items()}
+        sum((out[k] * weights[k]).sum() for k in out).backward()
+        sum((ref[k] * weights[k]).sum() for k in ref).backward()
+        for name, param in params.items():
+            torch.testing.assert_close(
+                param.grad, ref_params[name].grad, rtol=1e-7, atol=1e-9, msg=name
+            )
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_the_training_footprint_draws_the_same_through_the_glue(
+    torch_gsplat, monkeypatch, antialiased
+):
+    """`footprint.with_training_footprint` on gsplat's projection (its per-axis radii grown
+    with the dilation) draws what it draws on recon's: a render 2x finer than the training
+    sampling of half the Gaussians."""
+    from recon.gaussians.footprint import with_training_footprint
+
+    g, cam = random_gaussians(seed=3), cameras()[1]
+    focal = float(cam.K[0, 0, 0])
+    z = g["means"] @ cam.cam_from_world[0, :3, :3].T + cam.cam_from_world[0, :3, 3]
+    T = torch.where(torch.arange(len(z)) % 2 == 0, 2 * z[:, 2] / focal, 0.5 * z[:, 2] / focal)
+    s = with_training_footprint(project_splats(g, cam, 2, 0.01, antialiased), T, focal, antialiased)
+    out = composite_rgbd(s, torch.ones(3))
+    with monkeypatch.context() as m:
+        m.setattr(gsplat_glue, "uses_gsplat", lambda t: False)
+        ref_s = project_splats(g, cam, 2, 0.01, antialiased)
+        ref = composite_rgbd(with_training_footprint(ref_s, T, focal, antialiased), torch.ones(3))
+        plain = composite_rgbd(ref_s, torch.ones(3))
+    for key in ("rgb", "depth", "acc"):
+        torch.testing.assert_close(out[key], ref[key], rtol=1e-9, atol=1e-10)
+    assert (ref["rgb"] - plain["rgb"]).abs().max() > 0.05  # the footprint changed the image
+
+
+def test_abs_grad_reaches_the_caller(torch_gsplat, monkeypatch):
+    """The AbsGS sums that densification reads arrive through gsplat's `.absgrad` and match
+    recon's rasterizer's."""
+    g, cam = random_gaussians(), cameras()[1]
+
+    def abs_grads(use_gsplat: bool) -> torch.Tensor:
+        monkeypatch.setattr(gsplat_glue, "uses_gsplat", lambda t: use_gsplat)
+        params = {k: v.clone().requires_grad_() for k, v in g.items()}
+        s = project_splats(params, cam, 2)
+        sink = torch.zeros_like(s.means2d)
+        from recon.gaussians.render import composite_rgb
+
+        rgb, _ = composite_rgb(s, torch.zeros(3), sink)
+        ((rgb - 0.5) ** 2).sum().backward()
+        return sink
+
+    ours, theirs = abs_grads(False), abs_grads(True)
+    assert ours.abs().sum() > 0
+    torch.testing.assert_close(theirs, ours, rtol=1e-8, atol=1e-10)
+
+
+def test_covariance_convention_matches_gsplat():
+    """Quaternion order (w, x, y, z) and scales = exp(log_scales): Sigma = R S S^T R^T."""
+    g = random_gaussians(G=20)
+    ours = covariance_3d(g["quats"], g["log_scales"])
+    theirs, _ = torch_impl._quat_scale_to_covar_preci(
+        g["quats"], torch.exp(g["log_scales"]), compute_preci=False
+    )
+    torch.testing.assert_close(theirs, ours, rtol=1e-12, atol=1e-14)
+
+
+def test_rasterize_features_dispatch_keeps_the_cpu_path():
+    """Without the glue (CPU tensors), splats carry no per-axis radii and the numba rasterizer
+    draws them."""
+    g, cam = random_gaussians(G=30), cameras()[0]
+    s = project_splats(g, cam, 0)
+    assert s.radii_xy is None
+    image, T = rasterize_features(
+        s.means2d, s.conics, s.opacities, s.colors, s.radii, s.depths, s.width, s.height
+    )
+    assert image.shape == (48, 64, 3) and T.shape == (48, 64)
+
+
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_the_3dgs_model_trains_through_the_glue(torch_gsplat, strategy):
+    """Densification (AbsGS gradients), MCMC relocation, the contribution prune and rendering
+    run on top of the glue's projected splats (as on CUDA) and fit the tiny scene."""
+    from recon.models.splatting import GaussianModel
+    from tests.models.test_splatting import config, synthetic_scene
+
+    scene, data = synthetic_scene()
+    overrides = {"densify_abs_grad": "on", "densify_stop": 100, "prune_contribution": 0.1}
+    if strategy == "mcmc":
+        overrides = {"densify_mode": "mcmc", "max_gaussians": 400, "relocate_stop": 100}
+    model = GaussianModel(config(**overrides), scene)
+    losses, counts = [], []
+    for step in range(120):
+        stats = model.train_step(data, step)
+        losses.append(float(stats["loss"]))
+        counts.append(model.num_gaussians)
+    assert sum(losses[-10:]) < 0.6 * sum(losses[:10])
+    assert len(set(counts)) > 1
+    out = model.render(data.cameras[0])
+    assert out["rgb"].shape == (32, 32, 3) and out["depth"].shape == (32, 32)
