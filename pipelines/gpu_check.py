@@ -338,7 +338,9 @@ def main() -> int:
         "--also-presets", default="", help="3dgs runs on fox with these presets too (e.g. fast)"
     )
     ap.add_argument(
-        "--tests", action="store_true", help="also run tests/e2e/test_cuda.py (beside the 3dgs runs)"
+        "--tests",
+        action="store_true",
+        help="also run tests/e2e/test_cuda.py (beside the 3dgs runs)",
     )
     ap.add_argument(
         "--heldout-only",

@@ -284,6 +284,7 @@ def test_probation_moves_nothing_and_resume_keeps_its_sums_and_release():
     assert straight.pose_correction.twists[~straight.pose_correction.frozen].any()
 
 
+@pytest.mark.slow
 def test_a_perturbed_training_camera_is_pulled_back(tmp_path, one_thread):
     """sample_data at 100 x 100 px, 35 training views; view r_033 turned by 1 deg about a random
     axis through its centre and its centre moved by 2 % of the scene box's diagonal. 800 steps

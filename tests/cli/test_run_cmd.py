@@ -3,9 +3,12 @@
 import json
 import time
 
+import pytest
+
 from tests.conftest import SAMPLE_DATA, recon_cli
 
 
+@pytest.mark.slow
 def test_run_from_photos_to_the_report_then_skips_what_is_fresh(tmp_path):
     ws = tmp_path / "ws"
     args = ("run", str(SAMPLE_DATA / "images"), "-w", str(ws), "--time-budget", "15")

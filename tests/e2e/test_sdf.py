@@ -9,6 +9,8 @@ import pytest
 
 from tests.conftest import REPO, recon_cli
 
+pytestmark = pytest.mark.slow  # whole training runs through the CLI: make test-all
+
 SMALL = [
     "--set",
     "log2_table_size=14",

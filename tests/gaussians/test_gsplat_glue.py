@@ -251,6 +251,7 @@ def test_rasterize_features_dispatch_keeps_the_cpu_path():
     assert image.shape == (48, 64, 3) and T.shape == (48, 64)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["default", "mcmc"])
 def test_the_3dgs_model_trains_through_the_glue(torch_gsplat, strategy):
     """Densification (AbsGS gradients), MCMC relocation, the contribution prune and rendering

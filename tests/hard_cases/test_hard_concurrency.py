@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from tests.conftest import REPO
 from tests.hard_cases.conftest import FAST_TRAIN, assert_one_line_error
 
@@ -37,6 +39,7 @@ def start_train(ws, run, steps, *extra):
     )
 
 
+@pytest.mark.slow
 def test_two_runs_with_different_names_both_work(sphere_ws):
     procs = {run: start_train(sphere_ws, run, 5) for run in ("left", "right")}
     for run, proc in procs.items():
@@ -47,6 +50,7 @@ def test_two_runs_with_different_names_both_work(sphere_ws):
     assert {"train/left", "train/right"} <= set(stages)  # neither record overwrote the other
 
 
+@pytest.mark.slow
 def test_second_writer_of_the_same_run_fails_fast(sphere_ws):
     first = start_train(sphere_ws, "busy", 100_000)
     try:

@@ -270,6 +270,7 @@ def test_unbounded_first_step_is_capped_and_seeded_from_points():
     assert (n == math.ceil(s[1] - s[0])).all() and n[0] < 160
 
 
+@pytest.mark.slow
 def test_learned_background_fills_what_the_volume_leaves_open():
     torch.manual_seed(0)
     data, info = unbounded_sphere_scene()

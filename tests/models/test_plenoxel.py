@@ -70,6 +70,7 @@ def sphere_config(**overrides):
     )
 
 
+@pytest.mark.slow
 def test_plenoxel_learns_a_sphere():
     torch.manual_seed(0)
     data, info = sphere_scene()

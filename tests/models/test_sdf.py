@@ -72,6 +72,7 @@ def test_scene_units_scale_distance_and_density():
         )
 
 
+@pytest.mark.slow
 def test_training_fits_the_sphere_surface_and_its_colours():
     torch.manual_seed(0)
     data, info, _ = sphere_scene(n_cams=8, size=24)
@@ -96,6 +97,7 @@ def test_training_fits_the_sphere_surface_and_its_colours():
     assert torch.nn.functional.cosine_similarity(n, x).mean() > 0.95
 
 
+@pytest.mark.slow
 def test_training_moves_the_surface_to_a_smaller_sphere():
     """A sphere of radius 0.5 seen in a box of half-size 1.6: the field starts at radius 0.8
     and must shrink to the object."""
@@ -195,6 +197,7 @@ def test_surface_points_term_is_the_mean_distance_at_the_points():
     assert model._surface_points_loss(data).item() == pytest.approx(0.2, abs=1e-5)
 
 
+@pytest.mark.slow
 def test_surface_points_pull_the_level_set_to_them_faster():
     """The box of half-size 1.6 starts the field at radius 0.8; points on the true sphere
     (radius 0.5) bring the zero level set there in fewer steps than the photos alone."""

@@ -181,7 +181,7 @@ def test_registered_with_flat_documented_config():
     import dataclasses
 
     spec = METHODS["3dgs"]
-    assert spec.config_cls is GaussiansConfig and set(spec.presets) == {"fast", "paper"}
+    assert spec.config_cls is GaussiansConfig and set(spec.presets) == {"fast", "paper", "gpu"}
     helps = field_help(GaussiansConfig)
     assert {f.name for f in dataclasses.fields(GaussiansConfig)} == set(helps)
     for preset in spec.presets.values():

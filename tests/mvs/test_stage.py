@@ -15,6 +15,7 @@ WALNUT = SHARED_DATA / "robovision_mvs_walnut"
 REFERENCE = WALNUT / "reference_reconstructions" / "2016_10_24__17_43_02" / "reference.ply"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not WALNUT.exists(), reason="../shared/data not present")
 def test_mvs_on_the_walnut_ring_lands_on_the_reference_surface(tmp_path):
     ws = tmp_path / "ws"

@@ -127,6 +127,7 @@ def test_dag_of_two_scenes_and_two_methods(two_scenes):
     )
 
 
+@pytest.mark.slow
 def test_touching_a_photo_reruns_exactly_that_scenes_jobs(two_scenes):
     tmp, scenes = two_scenes
     config = write_config(tmp, scenes, ["3dgs", "plenoxel"], [30, 60])
@@ -240,6 +241,7 @@ def test_slurm_jobs_carry_threads_memory_time_and_gpu(two_scenes, device):
     assert seen == {"3dgs", "ngp"}
 
 
+@pytest.mark.slow
 def test_tiny_sweep_on_sample_data_end_to_end(tmp_path):
     shutil.copytree(ROOT / "sample_data", tmp_path / "data" / "sample")
     config = write_config(tmp_path, {"sample": {"transforms": "data/sample"}}, ["3dgs"], [8])
