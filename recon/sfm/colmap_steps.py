@@ -272,6 +272,9 @@ def refine_intrinsics(model: pycolmap.Reconstruction, principal_point: bool) -> 
     before = float(model.compute_mean_reprojection_error())
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_principal_point = refine_pp
+    options.print_summary = (
+        False  # COLMAP prints its report whatever glog's level (the report has the errors)
+    )
     pycolmap.bundle_adjustment(model, options)
     model.update_point_3d_errors()
     return {
