@@ -80,8 +80,10 @@ def accumulate(
     weight = visible.float()
     if pixel_weights:
         weight = torch.where(visible, (math.pi * radii.float() ** 2).clamp_max(width * height), 0.0)
-    scale = grad_means2d.new_tensor([width / 2.0, height / 2.0])
-    state["grad2d"] += weight * (grad_means2d * scale).norm(dim=-1)
+    # scaled per axis by Python numbers: a tensor of them would be a host-to-device copy a step
+    g = grad_means2d
+    scaled = torch.stack((g[:, 0] * (width / 2.0), g[:, 1] * (height / 2.0)), dim=-1)
+    state["grad2d"] += weight * scaled.norm(dim=-1)
     state["count"] += weight
     state["radii"] = torch.maximum(state["radii"], radii / max(width, height))
 

@@ -45,23 +45,31 @@ def splat_opacities(opacity_logits: Tensor, conics: Tensor, antialiased: bool) -
     return opacities * antialias_compensation(conics) if antialiased else opacities
 
 
+def image_size(camera: Cameras) -> tuple[int, int]:
+    """(W, H) of the single camera `camera`: its size tensors read on the host (on a GPU a
+    wait for the device's queue, which a caller that knows the size avoids by passing `size`)."""
+    return int(camera.width[0]), int(camera.height[0])
+
+
 def project_splats(
     gaussians: Mapping[str, Tensor],
     camera: Cameras,
     sh_degree: int,
     near: float = 0.01,
     antialiased: bool = False,
+    size: tuple[int, int] | None = None,
 ) -> ProjectedSplats:
     """Project G Gaussians into the single camera `camera` (len 1), colours from SH of
     `sh_degree` seen from its centre, opacity = sigmoid(logit) (`splat_opacities`). CPU
     tensors take the fused numba pass (`project_fused`), CUDA tensors gsplat's projection
-    (`gsplat_glue`), other devices the pure-torch twin (`project_splats_torch`)."""
+    (`gsplat_glue`), other devices the pure-torch twin (`project_splats_torch`). `size`
+    (W, H): the camera's image size when the caller knows it (else read from the camera)."""
     if gsplat_glue.uses_gsplat(gaussians["means"]):
-        return project_splats_gsplat(gaussians, camera, sh_degree, near, antialiased)
+        return project_splats_gsplat(gaussians, camera, sh_degree, near, antialiased, size)
     if gaussians["means"].device.type != "cpu":
-        return project_splats_torch(gaussians, camera, sh_degree, near, antialiased)
+        return project_splats_torch(gaussians, camera, sh_degree, near, antialiased, size)
     g, dtype = gaussians, gaussians["means"].dtype
-    W, H = int(camera.width[0]), int(camera.height[0])
+    W, H = size or image_size(camera)
     means2d, conics, depths, radii, colors = project_fused(
         g["means"],
         g["quats"],
@@ -111,10 +119,11 @@ def project_splats_gsplat(
     sh_degree: int,
     near: float = 0.01,
     antialiased: bool = False,
+    size: tuple[int, int] | None = None,
 ) -> ProjectedSplats:
     """`project_splats` by gsplat's fused projection (CUDA), colours by `sh_colors`."""
     g, dtype = gaussians, gaussians["means"].dtype
-    W, H = int(camera.width[0]), int(camera.height[0])
+    W, H = size or image_size(camera)
     means2d, conics, depths, radii_xy = gsplat_glue.project(
         g["means"],
         g["quats"],
@@ -137,11 +146,12 @@ def project_splats_torch(
     sh_degree: int,
     near: float = 0.01,
     antialiased: bool = False,
+    size: tuple[int, int] | None = None,
 ) -> ProjectedSplats:
     """`project_splats` in vectorised torch with autograd (any device)."""
     dtype = gaussians["means"].dtype
     K, cam_from_world = camera.K[0].to(dtype), camera.cam_from_world[0].to(dtype)
-    W, H = int(camera.width[0]), int(camera.height[0])
+    W, H = size or image_size(camera)
     means2d, conics, depths, radii = project_gaussians(
         gaussians["means"],
         gaussians["quats"],

@@ -18,6 +18,8 @@ import torch
 from numba import prange
 from torch import Tensor
 
+from recon import devices
+
 WINDOW = 11
 SIGMA = 1.5
 K1, K2 = 0.01, 0.03
@@ -122,7 +124,7 @@ class _Ssim(torch.autograd.Function):
 def ssim(x: Tensor, y: Tensor) -> Tensor:
     """Mean SSIM of images x, y (C, H, W) in [0, 1], H, W >= 11; differentiable in x only.
     CPU tensors use the numba kernels; other devices `pytorch_msssim.ssim`."""
-    if x.device.type != "cpu":
+    if not devices.uses_cpu_kernels(x):
         import pytorch_msssim
 
         return pytorch_msssim.ssim(

@@ -663,12 +663,14 @@ class GaussianModel(Model):
         level = data.downsampled(c2f_factor(step, c.c2f_factor, c.c2f_interval, short_side))
         self._update_filter(data)  # first step, or resumed
         with record_function("3dgs.project"):
+            height, width = level.images.shape[1:3]  # not read from the camera: a GPU sync
             splats = project_splats(
                 self.gaussians(),
                 self._train_camera(level, view, step),
                 self._sh_degree(step),
                 c.near_plane,
                 c.antialiased,
+                (width, height),
             )
         splats.means2d.retain_grad()
         abs_grad = torch.zeros_like(splats.means2d) if self._abs_grad() else None

@@ -273,3 +273,33 @@ def test_the_3dgs_model_trains_through_the_glue(torch_gsplat, strategy):
     assert len(set(counts)) > 1
     out = model.render(data.cameras[0])
     assert out["rgb"].shape == (32, 32, 3) and out["depth"].shape == (32, 32)
+
+
+def test_an_ordinary_3dgs_step_through_the_glue_makes_no_host_round_trip(torch_gsplat, monkeypatch):
+    """On a GPU a step that reads a device tensor on the host (the camera's size, say) or sends
+    host data over waits for the GPU's queue. The step's code path on CUDA (the glue, the torch
+    SSIM) watched on CPU tensors, as `tests/models/test_device_clean.py` watches the volume
+    models: nothing but the view order, drawn on the host from (step, seed). Densification
+    steps (every 100th) are not watched."""
+    import inspect
+
+    from recon import devices
+    from recon.models import splatting
+    from tests.models.test_device_clean import HostRoundTrips
+    from tests.models.test_splatting import config, synthetic_scene
+
+    monkeypatch.setattr(devices, "uses_cpu_kernels", lambda t: False)
+    scene, data = synthetic_scene()
+    model = splatting.GaussianModel(config(densify_abs_grad="on", densify_interval=10), scene)
+    torch.manual_seed(0)
+    for step in range(12):
+        model.train_step(data, step)
+    mode = HostRoundTrips()
+    with mode:
+        for step in range(12, 20):
+            model.train_step(data, step)
+    lines, first = inspect.getsourcelines(splatting.view_for_step)
+    host_only = {
+        f"{inspect.getsourcefile(splatting)}:{n}" for n in range(first, first + len(lines))
+    }
+    assert mode.seen and {where for _, where in mode.seen} <= host_only, mode.seen
