@@ -149,7 +149,7 @@ def command(
     if not (options["steps"] or options["time_budget_s"] or options["patience"]):
         preset, _ = resolve_preset(options["preset"], spec.presets, device.type)
         method_cfg = spec.config_cls(**spec.presets.get(preset, {}))
-        options["steps"] = int(getattr(method_cfg, "default_steps", 0)) or 0
+        options["steps"] = method_cfg.default_steps
         if not options["steps"]:
             raise click.UsageError("give --steps, --time-budget or --patience")
     cfg = from_options(TrainConfig, options, method=method)

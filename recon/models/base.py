@@ -307,6 +307,9 @@ class MethodSpec:
     starts_from_splats: bool = False  # its config takes `init_ply`: a splat PLY to start from
     starts_from_fields: bool = False  # its config takes `bake_from`: a model with `radiance`
     uses_surface_points: bool = False  # its training uses `TrainData.surface_points`
+    # its config's `schedule_steps`, left at 0, is the run's planned step count to lay its step
+    # schedules out over (filled in by `train.resolution.plan_schedules`; 3dgs, sdf)
+    plans_schedules: bool = False
     # what it lacks to run on a CUDA device (a package to install), or None: () -> str | None
     cuda_missing: Callable | None = None
 

@@ -520,6 +520,7 @@ RESOLUTION = ResolutionPolicy(
 SPEC = register(
     MethodSpec(
         name="sdf",
+        plans_schedules=True,
         config_cls=SDFConfig,
         build=build,
         presets=PRESETS,

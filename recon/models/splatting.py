@@ -1016,6 +1016,7 @@ RESOLUTION = ResolutionPolicy(
 SPEC = register(
     MethodSpec(
         name="3dgs",
+        plans_schedules=True,
         config_cls=GaussiansConfig,
         build=build,
         presets=PRESETS,

@@ -210,16 +210,17 @@ def threads(cfg: TrainConfig) -> int:
     return cfg.threads or torch.get_num_threads() or 1
 
 
-def plans_schedules(method_cfg) -> bool:
-    """The method's config has a `schedule_steps` field left at 0 for the run to fill in."""
-    return getattr(method_cfg, "schedule_steps", None) == 0
+def plans_schedules(spec: MethodSpec, method_cfg) -> bool:
+    """The method plans its schedules (`MethodSpec.plans_schedules`) and this run's config
+    leaves `schedule_steps` at 0 for the run to fill in (not given with --set)."""
+    return spec.plans_schedules and method_cfg.schedule_steps == 0
 
 
 def plan_schedules(method_cfg, spec: MethodSpec, cfg: TrainConfig, res: WorkingResolution, speed):
-    """A method whose config has a `schedule_steps` field left at 0 gets the run's planned step
-    count there (`resolution.planned_steps` at the device's `speed`), to lay its step-based
+    """A method that plans its schedules, its config's `schedule_steps` left at 0, gets the
+    run's planned step count there (`resolution.planned_steps` at the device's `speed`), to lay its step-based
     schedules out over the run it will actually have. Returns the (possibly) updated config."""
-    if not plans_schedules(method_cfg):
+    if not plans_schedules(spec, method_cfg):
         return method_cfg
     plan = planned_steps(
         res.width, res.height, spec.resolution, cfg.time_budget_s, cfg.steps, speed
@@ -237,11 +238,11 @@ def probe_levels(width: int, height: int, policy: ResolutionPolicy) -> list[int]
     return sorted({downscale_for_max_side(width, height, s) for s in sides}, reverse=True)
 
 
-def needs_speed(cfg: TrainConfig, method_cfg) -> bool:
+def needs_speed(cfg: TrainConfig, spec: MethodSpec, method_cfg) -> bool:
     """A new run's level or step plan depends on the device's speed: a time budget, and the
     level left to the rule or step schedules to plan."""
     auto_level = not (cfg.downscale or cfg.max_side)
-    return cfg.time_budget_s > 0 and (auto_level or plans_schedules(method_cfg))
+    return cfg.time_budget_s > 0 and (auto_level or plans_schedules(spec, method_cfg))
 
 
 def measure_speed(
@@ -255,7 +256,7 @@ def measure_speed(
     cpu = device.type == "cpu"
     prior = prior_speed(threads(cfg)) if cpu else REFERENCE
     policy = spec.resolution
-    if not needs_speed(cfg, method_cfg) or policy.probe_pixels_per_s <= 0:
+    if not needs_speed(cfg, spec, method_cfg) or policy.probe_pixels_per_s <= 0:
         return prior, {"probe": None}
     idx = scene.split("train")
     views = [

@@ -245,7 +245,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
         f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
         f"{res.reason}"
     )
-    if getattr(method_cfg, "schedule_steps", 0):
+    if spec.plans_schedules and method_cfg.schedule_steps:
         log_fn(f"schedules laid out for a run of ~{method_cfg.schedule_steps} steps")
     data = load_train_data(ws, scene, "train", device, res.downscale)
     log_fn(training_images_line(ws, len(data), len(scene.split("test"))))
@@ -428,7 +428,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
                     "replanned": st.schedule_steps,
                 }
             }
-            if getattr(method_cfg, "schedule_steps", 0)
+            if spec.plans_schedules and method_cfg.schedule_steps
             else {}
         ),
         "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
