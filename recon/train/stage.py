@@ -220,26 +220,120 @@ def discard_unresumable_run(ws: Workspace, run: str) -> None:
 
 
 def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progress) -> dict:
+    """Set up (or resume) the run, train it, finish and record it: run.json says "done", or
+    "interrupted" / "failed" with the step and the reason, and its log is closed either way."""
+    r = _setup_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn)
+    reason = _run_loop_with_rollbacks(r, progress)
+    return _finish_run(r, reason)
+
+
+@dataclasses.dataclass
+class _Run:
+    """One run's training, as `_setup_run` made it: the model and its data, the run document
+    and the loop's state, and the run's log (open from setup until the run ends)."""
+
+    ws: Workspace
+    run: str
+    cfg: TrainConfig
+    spec: object  # MethodSpec
+    method_cfg: object
+    device: torch.device
+    model: object  # Model
+    data: object  # TrainData
+    held_cams: object
+    held_imgs: torch.Tensor | None
+    run_doc: dict
+    st: LoopState
+    points_from: Path | None
+    started: float
+    log_fn: object
+    log_file: object = None
+
+    def log(self, entry: dict) -> None:
+        self.log_file.write(json.dumps(entry) + "\n")
+        self.log_file.flush()
+
+    def checkpoint(self, state: LoopState) -> None:
+        save_checkpoint(
+            self.ws.checkpoints_dir(self.run),
+            state.step,
+            {
+                "model": self.model.state_dict(),
+                "training": self.model.training_state(),
+                "loop": {k: v for k, v in state.__dict__.items()},
+                "rng": torch.get_rng_state(),
+            },
+            self.cfg.keep_checkpoints,
+        )
+
+    def rollback(self, cause: str, rollbacks: int, lr_scale: LearningRateScale) -> LoopState:
+        """Reload the last good checkpoint after a non-finite loss (the `rollbacks`-th before
+        this one); the RNG moves on, so the retried steps see other rays / views."""
+        ck = load_latest_checkpoint(self.ws.checkpoints_dir(self.run), self.log_fn)
+        if ck is None:
+            raise FloatingPointError(
+                "the loss became non-finite before the first checkpoint; "
+                "lower the learning rates (see --list-options)"
+            )
+        self.model.load_state_dict(ck["model"])
+        self.model.load_training_state(ck["training"])
+        # time spent stays spent
+        state = LoopState(**{**ck["loop"], "elapsed_s": self.st.elapsed_s})
+        torch.manual_seed(self.cfg.seed + 7919 * (rollbacks + 1))
+        self.model.reseed(self.cfg.seed + 7919 * (rollbacks + 1))
+        lr_scale.scale *= ROLLBACK_LR_FACTOR
+        self.log(
+            {
+                "step": state.step,
+                "wall_s": state.wall_s,
+                "event": "rollback",
+                "count": rollbacks + 1,
+                "cause": cause,
+                "lr_scale": lr_scale.scale,
+            }
+        )
+        self.log_fn(
+            f"{cause}: rolled back to step {state.step}, learning rates x{lr_scale.scale:g} "
+            f"(rollback {rollbacks + 1} of {MAX_ROLLBACKS})"
+        )
+        return state
+
+    def end(self, status: str, **fields) -> None:
+        """A run that stops without finishing: its log closed, run.json saying why."""
+        self.log_file.close()
+        atomic_write_json(
+            self.ws.run_json(self.run),
+            {**self.run_doc, "status": status, "step": self.st.step, **fields},
+        )
+
+
+def _plan_run(ws, run, scene, cfg, spec, method_cfg, device, resume, log_fn):
+    """The working resolution, the method config with its schedules planned, and what the
+    throughput probe measured (None on a resume: the level the run started at, whatever
+    budget the resume gives)."""
+    if resume:
+        return trained_resolution(json.loads(ws.run_json(run).read_text()), scene), method_cfg, None
+    t_probe = time.perf_counter()
+    speed, probe = measure_speed(ws, scene, spec, method_cfg, cfg, device)
+    throughput = {**speed.to_json(), **probe, "probe_s": round(time.perf_counter() - t_probe, 3)}
+    if probe["probe"] is not None:
+        log_fn(f"throughput probe ({throughput['probe_s']:.1f} s): {speed.reason}")
+        seed_everything(cfg.seed)  # the run draws what it would have drawn without the probe
+    res = working_resolution(scene, spec, cfg, speed)
+    return res, plan_schedules(method_cfg, spec, cfg, res, speed), throughput
+
+
+def _setup_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn) -> _Run:
+    """A new run: the device's speed, the working resolution, the schedules' plan, the data,
+    the model; or a resumed one from its last checkpoint. Writes run.json ("running"), opens
+    the log and saves a first checkpoint (a known-good state to roll back to)."""
     started = time.time()
     device = torch.device(device_doc["device"])
     seed_everything(cfg.seed)
     scene = load_scene(ws)
-    throughput = None
-    if resume:  # the level the run started at, whatever budget the resume gives
-        res = trained_resolution(json.loads(ws.run_json(run).read_text()), scene)
-    else:
-        t_probe = time.perf_counter()
-        speed, probe = measure_speed(ws, scene, spec, method_cfg, cfg, device)
-        throughput = {
-            **speed.to_json(),
-            **probe,
-            "probe_s": round(time.perf_counter() - t_probe, 3),
-        }
-        if probe["probe"] is not None:
-            log_fn(f"throughput probe ({throughput['probe_s']:.1f} s): {speed.reason}")
-            seed_everything(cfg.seed)  # the run draws what it would have drawn without the probe
-        res = working_resolution(scene, spec, cfg, speed)
-        method_cfg = plan_schedules(method_cfg, spec, cfg, res, speed)
+    res, method_cfg, throughput = _plan_run(
+        ws, run, scene, cfg, spec, method_cfg, device, resume, log_fn
+    )
     sfm_w, sfm_h = scene.image_size("train")
     log_fn(
         f"working resolution {res.width}x{res.height} (sfm images {sfm_w}x{sfm_h} / {res.downscale}): "
@@ -300,58 +394,19 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
         run_doc = {**json.loads(ws.run_json(run).read_text()), **device_doc, "status": "running"}
         log_fn(f"resumed run '{run}' from step {st.step} ({st.wall_s:.0f} s of training)")
     atomic_write_json(ws.run_json(run), run_doc)
-    log_file = open(log_path, "a")  # noqa: SIM115 (closed in the finally below)
-
-    def log(entry: dict) -> None:
-        log_file.write(json.dumps(entry) + "\n")
-        log_file.flush()
-
-    def checkpoint(state: LoopState) -> None:
-        save_checkpoint(
-            ckpt_dir,
-            state.step,
-            {
-                "model": model.state_dict(),
-                "training": model.training_state(),
-                "loop": {k: v for k, v in state.__dict__.items()},
-                "rng": torch.get_rng_state(),
-            },
-            cfg.keep_checkpoints,
-        )
-
-    def rollback(cause: str) -> LoopState:
-        """Reload the last good checkpoint after a non-finite loss; the RNG moves on, so the
-        retried steps see other rays / views."""
-        ck = load_latest_checkpoint(ckpt_dir, log_fn)
-        if ck is None:
-            raise FloatingPointError(
-                "the loss became non-finite before the first checkpoint; "
-                "lower the learning rates (see --list-options)"
-            )
-        model.load_state_dict(ck["model"])
-        model.load_training_state(ck["training"])
-        state = LoopState(**{**ck["loop"], "elapsed_s": st.elapsed_s})  # time spent stays spent
-        torch.manual_seed(cfg.seed + 7919 * (rollbacks + 1))
-        model.reseed(cfg.seed + 7919 * (rollbacks + 1))
-        lr_scale.scale *= ROLLBACK_LR_FACTOR
-        log(
-            {
-                "step": state.step,
-                "wall_s": state.wall_s,
-                "event": "rollback",
-                "count": rollbacks + 1,
-                "cause": cause,
-                "lr_scale": lr_scale.scale,
-            }
-        )
-        log_fn(
-            f"{cause}: rolled back to step {state.step}, learning rates x{lr_scale.scale:g} "
-            f"(rollback {rollbacks + 1} of {MAX_ROLLBACKS})"
-        )
-        return state
-
-    checkpoint(st)  # a known-good state to roll back to
+    r = _Run(
+        ws, run, cfg, spec, method_cfg, device, model, data, held_cams, held_imgs, run_doc, st,
+        points_from, started, log_fn, open(log_path, "a"),  # noqa: SIM115 (closed by the run's end)
+    )  # fmt: skip
+    r.checkpoint(st)  # a known-good state to roll back to
     st.elapsed_s += time.time() - started  # setup (loading, pyramid level, first checkpoint) counts
+    return r
+
+
+def _run_loop_with_rollbacks(r: _Run, progress) -> str:
+    """`run_loop` until a stopping rule ends it, rolling back to the last checkpoint after a
+    non-finite loss (MAX_ROLLBACKS times). Ctrl-C / SIGTERM stop it between steps with a
+    checkpoint ("interrupted"); any other end is "failed". Returns the stopping reason."""
     stop = {"requested": False}
 
     def request_stop(signum, frame):
@@ -363,59 +418,61 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
         with LearningRateScale() as lr_scale:
             while True:
                 try:
-                    reason = run_loop(
-                        model,
-                        data,
-                        held_cams,
-                        held_imgs,
-                        cfg,
-                        st,
-                        log,
-                        checkpoint,
+                    return run_loop(
+                        r.model,
+                        r.data,
+                        r.held_cams,
+                        r.held_imgs,
+                        r.cfg,
+                        r.st,
+                        r.log,
+                        r.checkpoint,
                         progress,
                         interrupted=lambda: stop["requested"],
                     )
-                    break
                 except FloatingPointError as e:
                     if rollbacks >= MAX_ROLLBACKS:
                         raise
-                    st = rollback(str(e))
+                    r.st = r.rollback(str(e), rollbacks, lr_scale)
                     rollbacks += 1
     except KeyboardInterrupt:
-        checkpoint(st)
-        log({"step": st.step, "wall_s": st.wall_s, "event": "interrupted"})
-        atomic_write_json(ws.run_json(run), {**run_doc, "status": "interrupted", "step": st.step})
-        log_file.close()
+        r.checkpoint(r.st)
+        r.log({"step": r.st.step, "wall_s": r.st.wall_s, "event": "interrupted"})
+        r.end("interrupted")
         raise KeyboardInterrupt(
-            f"interrupted at step {st.step}; checkpoint saved. Resume with: "
-            f"recon train -w {ws.root} --run {run} --resume"
+            f"interrupted at step {r.st.step}; checkpoint saved. Resume with: "
+            f"recon train -w {r.ws.root} --run {r.run} --resume"
         )
     except Exception as e:  # the last allowed rollback, or anything else: say so and close
         error = f"{type(e).__name__}: {e}"
-        log({"step": st.step, "wall_s": st.wall_s, "event": "failed", "error": error})
-        log_file.close()
-        failed = {**run_doc, "status": "failed", "step": st.step, "error": error}
-        atomic_write_json(ws.run_json(run), failed)
+        r.log({"step": r.st.step, "wall_s": r.st.wall_s, "event": "failed", "error": error})
+        r.end("failed", error=error)
         raise
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    checkpoint(st)
-    log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
+
+
+def _finish_run(r: _Run, reason: str) -> dict:
+    """The last checkpoint, `Model.finish`, the model file, run.json "done" and the stage's
+    record in the workspace. Returns run.json's summary."""
+    ws, run, st, model, method_cfg, device = r.ws, r.run, r.st, r.model, r.method_cfg, r.device
+    r.checkpoint(st)
+    r.log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "stop", "reason": reason})
     if st.schedule_steps:
-        log_fn(
+        r.log_fn(
             f"schedules re-planned for ~{st.schedule_steps} steps from the measured step rate "
             f"(planned ~{method_cfg.schedule_steps}); {st.step} made"
         )
     t_finish = time.perf_counter()
-    finished = model.finish(data)
+    finished = model.finish(r.data)
     if finished:  # a last clean-up of the model (`Model.finish`), outside the time budget
         finished["finish_s"] = round(time.perf_counter() - t_finish, 2)
-        log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "finish", **finished})
-    log_file.close()
-    save_model(ws.model_path(run), spec.name, asdict(method_cfg), model)
+        r.log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "finish", **finished})
+    r.log_file.close()
+    save_model(ws.model_path(run), r.spec.name, asdict(method_cfg), model)
     summary = {
-        **run_doc,
+        **r.run_doc,
         "status": "done",
         "stop_reason": reason,
         "steps": st.step,
@@ -428,7 +485,7 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
                     "replanned": st.schedule_steps,
                 }
             }
-            if spec.plans_schedules and method_cfg.schedule_steps
+            if r.spec.plans_schedules and method_cfg.schedule_steps
             else {}
         ),
         "best_test_psnr": None if st.best_psnr == -float("inf") else round(st.best_psnr, 4),
@@ -446,11 +503,11 @@ def _train_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn, progr
     atomic_write_json(ws.run_json(run), summary)
     ws.record_stage(
         f"train/{run}",
-        config={"train": asdict(cfg), "method": asdict(method_cfg)},
-        inputs={"cameras": ws.cameras_json, **({"mvs": points_from} if points_from else {})},
+        config={"train": asdict(r.cfg), "method": asdict(method_cfg)},
+        inputs={"cameras": ws.cameras_json, **({"mvs": r.points_from} if r.points_from else {})},
         outputs={"model": ws.model_path(run)},
-        upstream=["sfm"] + (["mvs"] if points_from else []),
-        started=started,
+        upstream=["sfm"] + (["mvs"] if r.points_from else []),
+        started=r.started,
         ended=time.time(),
         extra={"stop_reason": reason, "steps": st.step},
     )
