@@ -25,6 +25,14 @@ def uses_cpu_kernels(t: Tensor) -> bool:
     return t.device.type == "cpu"
 
 
+def masked(mask: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
+    """(t[mask] for t in tensors), the (N,) bool `mask` read back once: each boolean index
+    reads its mask's count on the host, a wait for the GPU's queue. Example: mask [T, F, T],
+    tensors [1, 2, 3] and [[1], [2], [3]] -> ([1, 3], [[1], [3]])."""
+    index = mask.nonzero()[:, 0]
+    return tuple(t.index_select(0, index) for t in tensors)
+
+
 def generator_on(generator: torch.Generator, device: torch.device) -> torch.Generator:
     """`generator` itself when it already draws on `device`, else a new one there seeded with
     its initial seed (a generator's state cannot cross device types: CPU Mersenne Twister,

@@ -161,8 +161,9 @@ class SparseVoxelGrid(nn.Module):
         a_all, b_all = [], []
         for axis in range(3):
             ok = ijk[:, axis] < self.res - 1
-            nb = self.links[flat[ok] + (1, self.res, self.res**2)[axis]].long()
-            linked = nb >= 0
-            a_all.append(rows[ok][linked])
-            b_all.append(nb[linked])
+            # a row on the far face looks itself up (in range) and is dropped by `ok`
+            nb = self.links[torch.where(ok, flat + (1, self.res, self.res**2)[axis], flat)].long()
+            a, b = devices.masked(ok & (nb >= 0), rows, nb)  # one read of the mask, not four
+            a_all.append(a)
+            b_all.append(b)
         return torch.cat(a_all), torch.cat(b_all)

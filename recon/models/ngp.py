@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from recon import devices
 from recon.cameras import Cameras
 from recon.fields.hashgrid import HashGrid
 from recon.fields.sh import num_sh_bases, sh_basis
@@ -340,7 +341,7 @@ class NGPModel(Model):
             evaluated = ri.shape[0]
             sigma, geo = self.field.geometry(x)
             keep = terminated_mask(sigma.detach(), t0, t1, ri, self.cfg.eps_transmittance)
-            ri, t0, t1, sigma, geo = ri[keep], t0[keep], t1[keep], sigma[keep], geo[keep]
+            ri, t0, t1, sigma, geo = devices.masked(keep, ri, t0, t1, sigma, geo)
         self._kept_fraction = ri.shape[0] / max(evaluated, 1)
         rgb = self.field.color(geo, self.field.encode_directions(directions)[ri])
         bg = self.background_colour(directions) if background is None else background

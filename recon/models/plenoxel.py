@@ -311,7 +311,7 @@ class PlenoxelModel(Model):
             mids = 0.5 * (t0 + t1)
             sig = self._sigma_unit(self.to_unit(origins[ray_idx] + mids[:, None] * dirs[ray_idx]))
             keep = terminated_mask(sig, t0, t1, ray_idx, self.cfg.eps_transmittance) & (sig > 0)
-            ray_idx, t0, t1 = ray_idx[keep], t0[keep], t1[keep]
+            ray_idx, t0, t1 = devices.masked(keep, ray_idx, t0, t1)
         return ray_idx, t0, t1
 
     def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:

@@ -58,7 +58,7 @@ def march_intervals(
     spacing = (step, cone_angle, disparity_from)
     starts, ends = _interval_edges(ray_indices, k, t_min, t_max, s_min, u, spacing)
     keep = ends > starts  # ceil() of a rounded count can add one empty interval at the end
-    return ray_indices[keep], starts[keep], ends[keep]
+    return devices.masked(keep, ray_indices, starts, ends)
 
 
 def _march_counts(
@@ -205,7 +205,7 @@ def march_terminated(
         ri, t0, t1, x = march(open_ids, limit)
         if done:
             new = ~first_per_ray(ri, done)
-            ri, t0, t1, x = ri[new], t0[new], t1[new], x[new]
+            ri, t0, t1, x = devices.masked(new, ri, t0, t1, x)
         values = sigma(x)
         sig, feats = values if isinstance(values, tuple) else (values, None)
         tau = (sig * (t1 - t0)).clamp(max=_TAU_CAP)
@@ -216,9 +216,10 @@ def march_terminated(
         else:
             trans = trans * torch.exp(-depth[open_ids][ri])
         keep = trans >= eps
-        kept.append((open_ids[ri[keep]], t0[keep], t1[keep], x[keep]))
-        if feats is not None:
-            kept[-1] += (sig[keep], feats[keep])
+        kept_ri, *rest = devices.masked(
+            keep, ri, t0, t1, x, *(() if feats is None else (sig, feats))
+        )
+        kept.append((open_ids[kept_ri], *rest))
         depth.index_add_(0, open_ids[ri], tau)
         if limit <= 0 or limit == max_samples:
             break
@@ -419,11 +420,11 @@ class OccupancyGrid(nn.Module):
             starts, ends = _interval_edges(ri, k, t_min, t_max, s_min, u, spacing)
             x = origins[ri] + (0.5 * (starts + ends))[:, None] * directions[ri]
             keep = (ends > starts) & self.is_occupied(to_unit(x))
-            ri, starts, ends = ri[keep], starts[keep], ends[keep]
+            ri, starts, ends = devices.masked(keep, ri, starts, ends)
             if max_samples > 0:  # the first max_samples of each ray, counting earlier rounds
                 rank = torch.arange(ri.shape[0], device=ri.device) - torch.searchsorted(ri, ri)
                 keep = found[ri] + rank < max_samples
-                ri, starts, ends = ri[keep], starts[keep], ends[keep]
+                ri, starts, ends = devices.masked(keep, ri, starts, ends)
             parts.append((ri, starts, ends))
             found += torch.bincount(ri, minlength=counts.shape[0])
             done[rays] += n
