@@ -1,4 +1,4 @@
-"""Adaptive density control (Kerbl et al. 2023, Sec. 5.2), as a stateless strategy dataclass plus a state dict of accumulators (gsplat style).
+"""Adaptive density control (Kerbl et al. 2023, Sec. 5.2), as a stateless strategy dataclass plus a state dict of accumulators (gsplat style; the interface: `strategy.Strategy`).
 
 Per step, for every Gaussian visible in the view, accumulate |dL/d mu'_ndc| (the 2D mean
 gradient in NDC units, dL/d mu'_px * (W/2, H/2), as the reference) and the largest screen
@@ -56,6 +56,23 @@ class DensifyStrategy:
     pixel_weights: bool = opt(
         False, "average the gradient over views weighted by screen area (Pixel-GS), not per view"
     )
+
+    @property
+    def uses_abs_grad(self) -> bool:
+        return self.abs_grad
+
+    def regularizer(self, params: nn.ParameterDict) -> Tensor | None:
+        return None
+
+    def post_backward(
+        self, params, optimizer, state, splats, abs_grad, step, scene_extent, means_lr, generator
+    ) -> dict[str, Tensor]:
+        """`strategy.Strategy.post_backward`: the view's 2D gradients into the accumulators
+        (before `stop`), then `post_step`'s schedule."""
+        if step + 1 < self.stop:
+            grad = splats.means2d.grad if abs_grad is None else abs_grad
+            accumulate(state, grad, splats.radii, splats.width, splats.height, self.pixel_weights)
+        return post_step(self, params, optimizer, state, step, scene_extent, generator)
 
 
 def init_state(n: int, device=None) -> dict[str, Tensor]:

@@ -1,5 +1,6 @@
 """Gaussian count control by relocation (Kheradmand et al. 2024, "3D Gaussian Splatting as Markov
-Chain Monte Carlo"): a stateless strategy, as `densify.DensifyStrategy` is for clone/split/prune.
+Chain Monte Carlo"): a stateless strategy, as `densify.DensifyStrategy` is for clone/split/prune
+(their one interface: `strategy.Strategy`).
 
 The Gaussians are read as samples of a distribution that the photometric loss shapes, and the
 update becomes a Langevin step: after each optimizer step every mean gets Gaussian noise shaped
@@ -41,6 +42,19 @@ class McmcStrategy:
     stop: int = 25_000  # no relocation or growth from this step on (the noise goes on)
     interval: int = 100  # steps between refinements
     max_copies: int = 51  # copies beyond this at one Gaussian are counted as this many
+    opacity_reg: float = 0.01  # L1 weight on the opacities in the loss (`regularizer`)
+    scale_reg: float = 0.01  # L1 weight on the scales in the loss
+    uses_abs_grad = False  # a class constant: not a field
+
+    def regularizer(self, params: nn.ParameterDict) -> Tensor | None:
+        return regularizer(params, self.opacity_reg, self.scale_reg)
+
+    def post_backward(
+        self, params, optimizer, state, splats, abs_grad, step, scene_extent, means_lr, generator
+    ) -> dict[str, Tensor]:
+        """`strategy.Strategy.post_backward`: `post_step` (no accumulators: `state` as given)."""
+        post_step(self, params, optimizer, step, means_lr, scene_extent, generator)
+        return state
 
 
 def relocated(opacity: Tensor, scales: Tensor, copies: Tensor) -> tuple[Tensor, Tensor]:

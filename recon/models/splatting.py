@@ -57,6 +57,7 @@ from recon.gaussians.render import (
     project_splats,
 )
 from recon.gaussians.ssim import ssim
+from recon.gaussians.strategy import Strategy
 from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
@@ -173,8 +174,12 @@ class GaussiansConfig:
     )
     mcmc_growth: float = opt(0.05, "mcmc: each refinement adds this fraction of the count")
     mcmc_noise_lr: float = opt(5e5, "mcmc: the position noise's scale, times the means lr")
-    mcmc_opacity_reg: float = opt(0.01, "mcmc: weight of the L1 penalty on the opacities")
-    mcmc_scale_reg: float = opt(0.01, "mcmc: weight of the L1 penalty on the scales")
+    mcmc_opacity_reg: float = opt(
+        mcmc.McmcStrategy.opacity_reg, "mcmc: weight of the L1 penalty on the opacities"
+    )
+    mcmc_scale_reg: float = opt(
+        mcmc.McmcStrategy.scale_reg, "mcmc: weight of the L1 penalty on the scales"
+    )
     relocate_stop: int = opt(25_000, "mcmc: no relocation or growth from this step on")
     schedule_steps: int = opt(
         0,
@@ -482,9 +487,7 @@ def uses_mcmc(config: GaussiansConfig, unbounded: bool) -> bool:
     return modes[config.densify_mode]
 
 
-def densify_strategy(
-    config: GaussiansConfig, unbounded: bool
-) -> densify.DensifyStrategy | mcmc.McmcStrategy:
+def densify_strategy(config: GaussiansConfig, unbounded: bool) -> Strategy:
     if uses_mcmc(config, unbounded):
         return mcmc.McmcStrategy(
             cap=config.max_gaussians,
@@ -494,6 +497,8 @@ def densify_strategy(
             start=config.densify_start,
             stop=config.relocate_stop,
             interval=config.densify_interval,
+            opacity_reg=config.mcmc_opacity_reg,
+            scale_reg=config.mcmc_scale_reg,
         )
     abs_grad = uses_abs_grad(config, unbounded)
     return densify.DensifyStrategy(
@@ -680,8 +685,8 @@ class GaussianModel(Model):
         target = level.images[view]
         with record_function("3dgs.loss"):
             loss = photometric_loss(rgb, target, c.ssim_weight)
-            if isinstance(self.strategy, mcmc.McmcStrategy):
-                loss = loss + mcmc.regularizer(self.params, c.mcmc_opacity_reg, c.mcmc_scale_reg)
+            if (regularizer := self.strategy.regularizer(self.params)) is not None:
+                loss = loss + regularizer
         self.optimizer.zero_grad(set_to_none=True)
         with record_function("3dgs.backward"):
             loss.backward()
@@ -860,29 +865,16 @@ class GaussianModel(Model):
         self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
 
     def _abs_grad(self) -> bool:
-        return isinstance(self.strategy, densify.DensifyStrategy) and self.strategy.abs_grad
+        return self.strategy.uses_abs_grad
 
     def _densify(
         self, splats: ProjectedSplats, abs_grad: Tensor | None, step: int, extent: float
     ) -> None:
         gen = torch.Generator(device=self.params["means"].device)
         gen.manual_seed(self.config.seed + 7919 * step)
-        if isinstance(self.strategy, mcmc.McmcStrategy):
-            lr = means_lr(self.config, step, extent)
-            mcmc.post_step(self.strategy, self.params, self.optimizer, step, lr, extent, gen)
-            return
-        if step + 1 < self.strategy.stop:
-            grad = splats.means2d.grad if abs_grad is None else abs_grad
-            densify.accumulate(
-                self.densify_state,
-                grad,
-                splats.radii,
-                splats.width,
-                splats.height,
-                self.strategy.pixel_weights,
-            )
-        self.densify_state = densify.post_step(
-            self.strategy, self.params, self.optimizer, self.densify_state, step, extent, gen
+        lr = means_lr(self.config, step, extent)
+        self.densify_state = self.strategy.post_backward(
+            self.params, self.optimizer, self.densify_state, splats, abs_grad, step, extent, lr, gen
         )
 
     @torch.no_grad()
