@@ -469,3 +469,14 @@ def test_scene_extent_of_a_forward_facing_capture_is_its_depth():
     assert scene_extent(cams, None, "auto") == pytest.approx(0.55)
     with pytest.raises(ValueError, match="extent must be one of"):
         scene_extent(cams, points, "median")
+
+
+def test_antialiasing_is_on_for_real_captures_by_default():
+    from recon.models.splatting import uses_antialiasing
+
+    assert uses_antialiasing(config(), True) and not uses_antialiasing(config(), False)
+    for given, expected in ((True, True), (False, False), ("true", True), ("off", False)):
+        assert uses_antialiasing(config(antialiased=given), True) is expected  # saved booleans too
+        assert uses_antialiasing(config(antialiased=given), False) is expected
+    with pytest.raises(ValueError, match="antialiased must be on, off or auto"):
+        uses_antialiasing(config(antialiased="sometimes"), True)
