@@ -691,7 +691,7 @@ class GaussianModel(Model):
                 (width, height),
             )
         splats.means2d.retain_grad()
-        abs_grad = torch.zeros_like(splats.means2d) if self._abs_grad() else None
+        abs_grad = torch.zeros_like(splats.means2d) if self.strategy.uses_abs_grad else None
         with record_function("3dgs.rasterize"):
             rgb, _ = composite_rgb(splats, self.background, abs_grad)
         rgb = self._corrected(rgb, view, data.cameras)
@@ -876,9 +876,6 @@ class GaussianModel(Model):
         drop = least_contributing(scores, self.prune_fraction)
         keep_rows(self.params, self.optimizer, ~drop.to(self.params["means"].device))
         self.densify_state = densify.init_state(self.num_gaussians, self.params["means"].device)
-
-    def _abs_grad(self) -> bool:
-        return self.strategy.uses_abs_grad
 
     def _densify(
         self, splats: ProjectedSplats, abs_grad: Tensor | None, step: int, extent: float

@@ -11,13 +11,17 @@ import resource
 import shutil
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any, TextIO
 
 import numpy as np
 import torch
 
+from recon.cameras import Cameras
 from recon.io.ply import read_points_ply
+from recon.models.base import MethodSpec, Model, TrainData
 from recon.models.registry import choose_device, config_from_json, import_methods, save_model
 from recon.train.checkpoint import has_checkpoint, load_latest_checkpoint, save_checkpoint
 from recon.train.config import TrainConfig, build_config, resolve_preset
@@ -235,19 +239,19 @@ class _Run:
     ws: Workspace
     run: str
     cfg: TrainConfig
-    spec: object  # MethodSpec
-    method_cfg: object
+    spec: MethodSpec
+    method_cfg: Any  # the method's config dataclass
     device: torch.device
-    model: object  # Model
-    data: object  # TrainData
-    held_cams: object
+    model: Model
+    data: TrainData
+    held_cams: Cameras | None
     held_imgs: torch.Tensor | None
     run_doc: dict
     st: LoopState
     points_from: Path | None
-    started: float
-    log_fn: object
-    log_file: object = None
+    started: float  # time.time() when setup began
+    log_fn: Callable[[str], None]
+    log_file: TextIO  # log.jsonl, appended to
 
     def log(self, entry: dict) -> None:
         self.log_file.write(json.dumps(entry) + "\n")
