@@ -12,11 +12,12 @@ from recon.options import opt
 class SfmConfig:
     """Options of `run_sfm` (one CLI flag each; the comment after a field is its help).
 
-    SIFT keypoints found on the downscaled image are rescaled to full resolution. At 1600 px
-    or more SIFT skips its 2x-upsampled first octave (4x cheaper, ~3000 keypoints per phone
-    photo); on the fox capture (67 photos 1080x1920) this matched the accuracy of 1200 px with
-    upsampling (0.12 deg, 0.09 % of the camera spread) for 60 % of the CPU time. Matching
-    cost grows with `max_num_features` squared per pair and with the number of pairs.
+    SIFT keypoints found on the downscaled image are rescaled to full resolution. Above 1000 px
+    SIFT skips its 2x-upsampled first octave (4x cheaper); 1024 px keeps ~1,400 keypoints on a
+    phone photo, enough for poses well inside what training at a quarter of the photo's size
+    can tell apart (bench/results/2026-11-29-sfm-speed.md). Matching cost grows with the
+    keypoints squared per pair and with the number of pairs, which `retrieval` keeps at ~k per
+    photo instead of all of them.
 
     The camera model is OPENCV (two focal lengths, principal point, k1, k2, p1, p2; what
     instant-ngp's colmap2nerf and nerfstudio use for photos) and a last bundle adjustment refines
@@ -27,12 +28,16 @@ class SfmConfig:
     against 32.09 / 0.103 (bench/results/sfm_camera_model.md).
     """
 
-    max_image_size: int = opt(1600, "SIFT runs on photos downscaled to this longer side (px)")
+    max_image_size: int = opt(1024, "SIFT runs on photos downscaled to this longer side (px)")
     max_num_features: int = opt(4096, "SIFT keypoints kept per image")
     matcher: str = opt(
         "auto",
-        "photos: feature matcher (auto: exhaustive up to 100 photos, sequential for video frames)",
-        choices=("auto", "exhaustive", "sequential"),
+        "photos: feature matcher (auto: exhaustive up to 40 photos, else retrieval; sequential"
+        " for video frames)",
+        choices=("auto", "exhaustive", "retrieval", "sequential"),
+    )
+    retrieval_neighbors: int = opt(
+        20, "retrieval matcher: each photo is matched with this many most similar photos"
     )
     mapper: str = opt(
         "incremental",

@@ -26,10 +26,12 @@ from recon.sfm.colmap_config import SfmConfig
 from recon.sfm.colmap_report import build_report
 from recon.sfm.colmap_steps import Attempt, AttemptOptions, PhaseTimer, Progress
 from recon.sfm.photos import PhotoSet, prepare_photos
+from recon.sfm.retrieval import retrieval_pairs
 
-MATCHERS = ("auto", "exhaustive", "sequential")
+MATCHERS = ("auto", "exhaustive", "retrieval", "sequential")
 MAPPERS = ("incremental", "global")
-AUTO_EXHAUSTIVE_MAX_IMAGES = 100  # exhaustive costs N^2/2 pairs; beyond this, sequential
+# exhaustive costs N^2/2 pairs; beyond this many photos, retrieval (~k N pairs) costs less
+AUTO_EXHAUSTIVE_MAX_IMAGES = 40
 
 
 class SfmError(RuntimeError):
@@ -63,11 +65,11 @@ def attempt_ladder(config: SfmConfig, num_images: int) -> list[AttemptOptions]:
     """Attempt 1 uses the config. With `try_harder`, attempt 2 re-extracts the photos left out
     with 4x more SIFT features, a lower peak threshold and 2x upsampling (finer, fainter
     blobs), matches them against every photo and relaxes the verification and registration
-    thresholds; attempt 3 re-matches them with guided matching and, if attempt 1 matched
-    sequentially, matches all pairs (up to 300 photos). See `colmap_retry`."""
+    thresholds; attempt 3 re-matches them with guided matching and, if attempt 1 did not
+    match exhaustively, matches all pairs (up to 300 photos). See `colmap_retry`."""
     matcher = config.matcher
     if matcher == "auto":
-        matcher = "exhaustive" if num_images <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
+        matcher = "exhaustive" if num_images <= AUTO_EXHAUSTIVE_MAX_IMAGES else "retrieval"
     first = AttemptOptions(
         name="defaults",
         max_image_size=config.max_image_size,
@@ -173,6 +175,15 @@ def prepare_retry(
     return colmap_retry.retry_pairs(photos.names, retry, all_pairs)
 
 
+def first_pairs(database: Path, names: list[str], matcher: str, neighbors: int) -> list:
+    """The image pairs a first attempt matches."""
+    if matcher == "exhaustive":
+        return steps.exhaustive_pairs(names)
+    if matcher == "retrieval":
+        return retrieval_pairs(names, steps.read_descriptors(database, names), neighbors)
+    return steps.sequential_pairs(names)
+
+
 def run_attempt(
     options: AttemptOptions,
     index: int,
@@ -201,8 +212,7 @@ def run_attempt(
             steps.extract_features(
                 db, photos.staging_dir, groups, options, config.camera_model, threads, report
             )
-            exhaustive = options.matcher == "exhaustive"
-            pairs = steps.exhaustive_pairs(names) if exhaustive else steps.sequential_pairs(names)
+            pairs = first_pairs(db, names, options.matcher, config.retrieval_neighbors)
     with attempt.timer("matching"):
         attempt.pairs_matched = len(pairs)
         steps.match_pairs(db, directory, pairs, options, config.seed, threads, report)

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 Progress = Callable[[str, int, int], None]
@@ -26,6 +27,11 @@ DEFAULT_PEAK_THRESHOLD = 0.02 / 3
 SIFT_UPSAMPLE_BELOW = 1000  # px, longer side after the max_image_size downscale
 EXTRACTION_CHUNK = 8  # images per extract_features call: progress granularity vs. thread start-up
 MATCHING_CHUNK = 150  # image pairs per match_image_pairs call
+# The incremental mapper adjusts the whole model each time it grew by this factor (COLMAP:
+# 1.1). Local adjustments keep each new image right in between, and `refine_intrinsics` ends
+# with a full adjustment, so the sparser schedule costs no accuracy and saves mapping time
+# (bench/results/2026-11-29-sfm-speed.md).
+GLOBAL_BA_GROWTH = 1.3
 
 
 @dataclass(frozen=True)
@@ -37,7 +43,7 @@ class AttemptOptions:
     max_num_features: int  # SIFT keypoints kept per image
     peak_threshold: float  # SIFT DoG peak threshold; lower finds more keypoints in low contrast
     always_upsample: bool  # SIFT first octave -1 on every image, not only small ones
-    matcher: str  # "exhaustive" | "sequential" (windowed + quadratic + keyframe loop closure)
+    matcher: str  # "exhaustive" | "retrieval" (VLAD nearest) | "sequential" (windowed + loops)
     guided_matching: bool  # re-match with the estimated epipolar geometry (more inliers, slower)
     min_num_inliers: int  # two-view geometry: inliers for a pair to count as verified
     min_num_matches: int  # mapper: verified inliers for a pair to be used at all
@@ -150,6 +156,16 @@ def sequential_pairs(
     return [(order[a], order[b]) for a, b in sorted(pairs)]
 
 
+def read_descriptors(database: Path, names: list[str]) -> list[np.ndarray]:
+    """(N_i, 128) uint8 SIFT descriptors of each named image, in the order of `names`."""
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        return [np.asarray(db.read_descriptors(ids[n]).data) for n in names]
+    finally:
+        db.close()
+
+
 def two_view_options(options: AttemptOptions, seed: int) -> pycolmap.TwoViewGeometryOptions:
     verification = pycolmap.TwoViewGeometryOptions()
     verification.min_num_inliers = options.min_num_inliers
@@ -207,6 +223,7 @@ def incremental_options(
     pipeline.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
     pipeline.mapper.abs_pose_min_inlier_ratio = options.abs_pose_min_inlier_ratio
     pipeline.mapper.init_min_tri_angle = options.init_min_tri_angle
+    pipeline.ba_global_frames_ratio = pipeline.ba_global_points_ratio = GLOBAL_BA_GROWTH
     # Small captures are still worth a model: COLMAP's default refuses models under 10 images.
     pipeline.min_model_size = min(10, max(2, len(names) // 2))
     return pipeline

@@ -74,8 +74,8 @@ def test_attempt_ladder():
     assert small[1].abs_pose_min_num_inliers < small[0].abs_pose_min_num_inliers
     # Attempt 3 changes only the matching, so it keeps attempt 2's features.
     assert extraction_key(small[2]) == extraction_key(small[1]) != extraction_key(small[0])
-    big = attempt_ladder(SfmConfig(), 150)
-    assert [a.matcher for a in big] == ["sequential", "sequential", "exhaustive"]
+    big = attempt_ladder(SfmConfig(), 41)
+    assert [a.matcher for a in big] == ["retrieval", "retrieval", "exhaustive"]
     assert len(attempt_ladder(SfmConfig(try_harder=False), 40)) == 1
     assert attempt_ladder(SfmConfig(matcher="sequential"), 40)[0].matcher == "sequential"
 
@@ -267,6 +267,23 @@ def test_single_thread_runs_repeat_exactly(tmp_path):
     assert poses[0].keys() == poses[1].keys() and len(poses[0]) == 8
     for name in poses[0]:
         np.testing.assert_array_equal(poses[0][name], poses[1][name])
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not FOX.exists(), reason="fox data not found beside the repo")
+def test_retrieval_matches_a_third_of_the_pairs_and_registers_every_photo(tmp_path):
+    """All 67 fox photos (quarter size): over 40 photos the auto matcher retrieves each photo's
+    20 most similar ones instead of matching all 2211 pairs; every photo still registers."""
+    src = fox_subset(tmp_path, 67)
+    result = run_sfm(src, tmp_path / "work", SfmConfig(try_harder=False))
+    report = result.report
+    assert report["config"]["matcher"] == "auto"
+    assert report["attempts"][0]["options"]["matcher"] == "retrieval"
+    assert 67 * 20 // 2 <= report["attempts"][0]["pairs_matched"] <= 2211 // 2
+    assert report["images_registered"] == 67
+    errors = fox_accuracy(result.reconstruction)
+    assert errors["median_rotation_error_deg"] < 0.5
+    assert errors["median_center_error_pct"] < 1.0
 
 
 @pytest.mark.slow
