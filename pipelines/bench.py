@@ -1,5 +1,6 @@
 """`make bench`: the lego-200 protocol for every method at its default CPU settings with a fixed
-training-time budget, plus sfm on fox; results as JSON + a markdown table in bench/results/.
+training-time budget, plus sfm on sample_data, fox and spiral-300 (300 photos at 800 x 600 that
+`make_capture.py` renders with exact poses); results as JSON + a markdown table in bench/results/.
 
 Protocol lego-200: `recon sfm --from-transforms nerf_synthetic_lego_400 --downscale 2`
 (200x200, white background), train on the 100 train frames, test PSNR/SSIM/LPIPS on test
@@ -270,9 +271,18 @@ def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse:
     out_plot.write_bytes((ws / "speed_vs_error.png").read_bytes())
     results["speed_vs_error_png"] = os.path.relpath(out_plot, ROOT)  # --out-dir may lie outside
     if not skip_sfm:
+        spiral = ROOT / "bench" / "work" / "data" / "spiral-300"  # made here: make_capture.py
+        if not (spiral / "transforms.json").exists():
+            print("bench: rendering the spiral-300 capture ...", file=sys.stderr, flush=True)
+            subprocess.run(
+                [sys.executable, str(ROOT / "pipelines" / "make_capture.py"), "--out", str(spiral)],
+                check=True,
+                cwd=ROOT,
+            )
         for scene, images, transforms in (
             ("sample", ROOT / "sample_data" / "images", ROOT / "sample_data" / "transforms.json"),
             ("fox", SHARED / "fox" / "images", SHARED / "fox" / "transforms.json"),
+            ("spiral-300", spiral / "images", spiral / "transforms.json"),
         ):
             out = partial / f"sfm-{scene}.json"
             if not (reuse and out.exists()):

@@ -12,7 +12,7 @@ from recon.options import opt
 class SfmConfig:
     """Options of `run_sfm` (one CLI flag each; the comment after a field is its help).
 
-    SIFT keypoints found on the downscaled image are rescaled to full resolution. Above 1000 px
+    SIFT keypoints found on the downscaled image are rescaled to full resolution. From 800 px
     SIFT skips its 2x-upsampled first octave (4x cheaper); 1024 px keeps ~1,400 keypoints on a
     phone photo, enough for poses well inside what training at a quarter of the photo's size
     can tell apart (bench/results/2026-11-29-sfm-speed.md). Matching cost grows with the

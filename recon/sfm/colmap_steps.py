@@ -22,16 +22,22 @@ Progress = Callable[[str, int, int], None]
 
 # SIFT peak threshold COLMAP uses by default (0.02 / octave_resolution).
 DEFAULT_PEAK_THRESHOLD = 0.02 / 3
-# SIFT's first octave at -1 doubles the image first (4x the pyramid cost) to find small
-# blobs; worth it only on small images, where the 0-octave keypoints are too few.
-SIFT_UPSAMPLE_BELOW = 1000  # px, longer side after the max_image_size downscale
+# SIFT's first octave at -1 doubles the image first (4x the pyramid cost, ~2.5x the keypoints,
+# and matching and mapping grow with them) to find small blobs; worth it only on small images,
+# where the 0-octave keypoints are too few to pose them (Lowe 2004, Sec. 3.3).
+SIFT_UPSAMPLE_BELOW = 800  # px, longer side after the max_image_size downscale
 EXTRACTION_CHUNK = 8  # images per extract_features call: progress granularity vs. thread start-up
 MATCHING_CHUNK = 150  # image pairs per match_image_pairs call
-# The incremental mapper adjusts the whole model each time it grew by this factor (COLMAP:
-# 1.1). Local adjustments keep each new image right in between, and `refine_intrinsics` ends
-# with a full adjustment, so the sparser schedule costs no accuracy and saves mapping time
+# The incremental mapper's global bundle adjustments, the bulk of mapping on hundreds of photos
+# (Schönberger & Frahm 2016, Sec. 4.5). COLMAP adjusts the whole model each time it grew by 10 %,
+# repeats each adjustment up to 5 times with re-triangulation in between, and adjusts every
+# point. Local adjustments keep each new image right in between and `refine_intrinsics` ends
+# with a full adjustment, so recon adjusts globally every 50 % of growth, once each time,
+# leaving out points whose cameras are already well covered by others (COLMAP's
+# `ba_global_ignore_redundant_points3D`): the same final poses for a fraction of the time
 # (bench/results/2026-11-29-sfm-speed.md).
-GLOBAL_BA_GROWTH = 1.3
+GLOBAL_BA_GROWTH = 1.5
+GLOBAL_BA_REFINEMENTS = 1
 
 
 @dataclass(frozen=True)
@@ -224,6 +230,8 @@ def incremental_options(
     pipeline.mapper.abs_pose_min_inlier_ratio = options.abs_pose_min_inlier_ratio
     pipeline.mapper.init_min_tri_angle = options.init_min_tri_angle
     pipeline.ba_global_frames_ratio = pipeline.ba_global_points_ratio = GLOBAL_BA_GROWTH
+    pipeline.ba_global_max_refinements = GLOBAL_BA_REFINEMENTS
+    pipeline.mapper.ba_global_ignore_redundant_points3D = True
     # Small captures are still worth a model: COLMAP's default refuses models under 10 images.
     pipeline.min_model_size = min(10, max(2, len(names) // 2))
     return pipeline

@@ -282,6 +282,45 @@ def ring_cameras(
     return Cameras(K, torch.stack(poses), width * size, height * size)
 
 
+def spiral_cameras(
+    target: tuple[float, float, float],
+    count: int,
+    turns: float,
+    elevations_deg: tuple[float, float],
+    radii: tuple[float, float],
+    focal: float,
+    width: int,
+    height: int,
+) -> Cameras:
+    """`count` cameras along a closed path around `target` (world z up), all looking at it:
+    a photographer walking `turns` times around an object, raising the camera from
+    elevations_deg[0] to [1] by the middle of the walk and lowering it back, while stepping
+    out to radii[1] in the first half and in to radii[0] in the second. With t = i / count,
+    view i is at azimuth 2 pi turns t, elevation e0 + (e1 - e0) (1 - cos(2 pi t)) / 2 and
+    distance (r0 + r1) / 2 + (r1 - r0) sin(2 pi t) / 2 from the target; the sine (odd about
+    t = 1/2, where the elevation is even) keeps views a whole number of turns apart distinct.
+    The principal point is the image centre.
+    """
+    target_t = torch.tensor(target, dtype=torch.float64)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    poses = []
+    for i in range(count):
+        t = i / count
+        a = 2.0 * math.pi * turns * t
+        e = math.radians(
+            elevations_deg[0]
+            + (elevations_deg[1] - elevations_deg[0]) * 0.5 * (1 - math.cos(2 * math.pi * t))
+        )
+        r = 0.5 * (radii[0] + radii[1]) + 0.5 * (radii[1] - radii[0]) * math.sin(2 * math.pi * t)
+        direction = [math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)]
+        eye = target_t + r * torch.tensor(direction, dtype=torch.float64)
+        poses.append(look_at(eye, target_t, up))
+    full = torch.full((count,), 1.0, dtype=torch.float64)
+    K = intrinsics_matrix(focal * full, focal * full, 0.5 * width * full, 0.5 * height * full)
+    size = torch.ones(count, dtype=torch.int64)
+    return Cameras(K, torch.stack(poses), width * size, height * size)
+
+
 def scene_trimesh(mesh: SceneMesh, texture: SolidTexture, config: SceneConfig) -> trimesh.Trimesh:
     """The ground-truth mesh for export, vertex colours = albedo at the vertices (for viewing)."""
     part = torch.zeros(len(mesh.vertices), dtype=torch.int64)

@@ -35,6 +35,7 @@ from recon.synthetic.scene import (
     make_texture,
     render_view,
     ring_cameras,
+    spiral_cameras,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -145,6 +146,30 @@ def test_interpolated_surface_points_reproject_onto_pixel_centres():
     torch.testing.assert_close(uv, torch.stack([cols, rows], -1).double() + 0.5, atol=1e-9, rtol=0)
     torch.testing.assert_close(z, frags.depth[frags.mask], atol=0, rtol=1e-10)
     assert 0.2 < frags.mask.double().mean() < 0.9
+
+
+def test_spiral_cameras_walk_the_stated_path_looking_at_the_target():
+    """Limiting values of the path: view 0 low at the middle distance, the middle view high,
+    a quarter of the way far and three quarters near; every camera's optical axis through the
+    target; no two views alike (a whole number of turns)."""
+    target = (0.3, -0.2, 0.3)
+    cams = spiral_cameras(target, 40, 2.0, (20.0, 60.0), (1.5, 2.5), 100.0, 80, 60)
+    centres = cams.world_from_cam[:, :3, 3]
+    offsets = centres - torch.tensor(target, dtype=torch.float64)
+    distance = offsets.norm(dim=1)
+    elevation = torch.rad2deg(torch.asin(offsets[:, 2] / distance))
+    torch.testing.assert_close(
+        distance[[0, 10, 20, 30]], torch.tensor([2.0, 2.5, 2.0, 1.5]).double()
+    )
+    torch.testing.assert_close(elevation[[0, 20]], torch.tensor([20.0, 60.0]).double())
+    azimuth = torch.rad2deg(torch.atan2(offsets[:, 1], offsets[:, 0]))
+    torch.testing.assert_close(azimuth[[0, 5, 10]], torch.tensor([0.0, 90.0, 180.0]).double())
+    axis = cams.world_from_cam[:, :3, 2]  # OpenCV: +z looks forward
+    torch.testing.assert_close(axis, -offsets / distance[:, None])
+    assert torch.cdist(centres, centres).add(torch.eye(40) * 9).min() > 0.05
+    assert (cams.width == 80).all() and torch.equal(
+        cams.K[:, 0, 2], torch.full((40,), 40.0).double()
+    )
 
 
 def test_back_face_culling_leaves_the_image_unchanged():
