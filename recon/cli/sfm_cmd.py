@@ -130,6 +130,7 @@ def _summary_line(report: dict, root: Path) -> str:
 @config_option(SfmConfig, "max_image_size", type=click.IntRange(64))
 @config_option(SfmConfig, "max_num_features", type=click.IntRange(64))
 @config_option(SfmConfig, "matcher")
+@config_option(SfmConfig, "retrieval_neighbors", type=click.IntRange(1))
 @config_option(SfmConfig, "mapper")
 @config_option(SfmConfig, "camera_model")
 @config_option(

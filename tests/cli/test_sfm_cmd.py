@@ -143,3 +143,25 @@ def test_video_flags(tmp_path):
         _video_config(video, 0, None, None)
     with pytest.raises(ValueError, match="apply to videos"):
         _video_config(SAMPLE_DATA / "images", None, None, 0.2)
+
+
+@pytest.mark.slow
+def test_retrieval_matcher_from_the_command_line(tmp_path):
+    """`--matcher retrieval --retrieval-neighbors 8` on the 40 sample photos: each photo meets
+    its 8 most similar ones (between 160 and 320 of the 780 pairs) and every photo registers."""
+    ws = tmp_path / "ws"
+    recon_cli(
+        "sfm",
+        str(SAMPLE_DATA / "images"),
+        "-w",
+        str(ws),
+        "--matcher",
+        "retrieval",
+        "--retrieval-neighbors",
+        "8",
+    )
+    report = json.loads((ws / "sfm" / "report.json").read_text())
+    assert report["config"]["matcher"] == "retrieval"
+    assert report["config"]["retrieval_neighbors"] == 8
+    assert 40 * 8 // 2 <= report["attempts"][0]["pairs_matched"] <= 40 * 8
+    assert report["images_registered"] == 40
