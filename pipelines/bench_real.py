@@ -1,5 +1,7 @@
-"""The real-capture benchmarks with the defaults, as a new user runs them: `fox-real` (67 phone
-photos around an object) and `llff-flower` (34 forward-facing photos at 1008 x 756).
+"""The real-capture suite with the defaults, as a new user runs it: `fox-real` (67 phone photos
+around an object), `llff-flower` (34 forward-facing photos at 1008 x 756) and `spiral-300` (300
+ordered photos at 800 x 600 of the sample scene, rendered with exact poses by
+`pipelines/make_capture.py` when missing: the many-photo capture).
 
 Protocol, through the real `recon` CLI (2 CPU threads, nothing else running):
 - `recon sfm PHOTOS -w WS` (the project's own SfM; every 8th photo, in name order, held out:
@@ -7,14 +9,17 @@ Protocol, through the real `recon` CLI (2 CPU threads, nothing else running):
 - per method and budget: `recon train -w WS --method M --time-budget B` and nothing else (the
   working resolution, coarse-to-fine, appearance and the rest are the defaults' choice);
 - `recon eval -w WS --run RUN [--downscale K]`: fox at a quarter of the photos (about 270 x 480,
-  its protocol), flower at the run's training size; both also at the photos' own size (fox
-  1080 x 1920, flower 1008 x 756: LLFF's protocol), beside the coarser render upsampled.
+  its protocol), flower and spiral at the run's training size; all also at the photos' own
+  size (fox 1080 x 1920, flower 1008 x 756: LLFF's protocol), beside the coarser render
+  upsampled.
   PSNR, SSIM, LPIPS, and PSNR on the outer 15 % band of each image;
 - wall time of `recon train` as measured around the command (the budget must bound it), steps/s,
   peak memory, model size, the working resolution the run chose.
 
-    python pipelines/bench_real.py [--scenes fox-real,llff-flower] [--methods 3dgs,ngp]
-        [--budgets 120,300,600,1800] [--reuse]
+    python pipelines/bench_real.py [--scenes fox-real,llff-flower,spiral-300]
+        [--methods 3dgs,ngp] [--budgets 120,600] [--reuse]
+
+Budgets: 3dgs at 2, 10 and 30 minutes and ngp at 10, unless --budgets names them.
 
 Writes bench/results/<date>-<machine>-<scene>.{json,md} (partial results per run in
 bench/results/partial/, reusable with --reuse).
@@ -27,6 +32,7 @@ import json
 import os
 import platform
 import socket
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -50,12 +56,25 @@ SCENES = {
         "eval_downscale": 0,
         "targets": {"3dgs": {600: 27.4, 1800: 28.0}},
     },
+    # 300 ordered photos at 800 x 600 of the sample scene, rendered here with exact poses
+    # (pipelines/make_capture.py): the many-photo capture of the suite
+    "spiral-300": {
+        "photos": ROOT / "bench" / "work" / "data" / "spiral-300" / "images",
+        "make": ROOT / "pipelines" / "make_capture.py",
+        "eval_downscale": 0,
+        "targets": {},
+    },
 }
+# the suite's runs: 3dgs at 2, 10 and 30 minutes, ngp at 10 (--budgets gives every method the same)
+BUDGETS = {"3dgs": (120, 600, 1800), "ngp": (600,)}
 
 
-def run_sfm(ws: Path, photos: Path) -> dict:
+def run_sfm(ws: Path, photos: Path, make: Path | None) -> dict:
     if (ws / "sfm" / "cameras.json").exists():
         return json.loads((ws / "sfm" / "report.json").read_text()) | {"reused": True}
+    if make is not None and not photos.exists():
+        print(f"bench: making {photos.parent.name} ({make.name}) ...", file=sys.stderr, flush=True)
+        subprocess.run([sys.executable, str(make), "--out", str(photos.parent)], check=True)
     t0 = time.perf_counter()
     out = recon("sfm", str(photos), "-w", str(ws))
     return out | {"wall_s": round(time.perf_counter() - t0, 1)}
@@ -179,10 +198,12 @@ def markdown(results: dict) -> str:
 
 
 @click.command()
-@click.option("--scenes", default="fox-real,llff-flower", show_default=True)
+@click.option("--scenes", default="fox-real,llff-flower,spiral-300", show_default=True)
 @click.option("--methods", default="3dgs,ngp", show_default=True)
 @click.option(
-    "--budgets", default="120,300,600,1800", show_default=True, help="Training budgets (s)."
+    "--budgets",
+    default="",
+    help="Training budgets (s) for every method [default: 3dgs 120,600,1800; ngp 600].",
 )
 @click.option(
     "--work",
@@ -218,10 +239,13 @@ def bench_scene(name: str, methods: str, budgets: str, ws: Path, out: Path, reus
     }
     print(f"bench {name}: sfm ...", file=sys.stderr, flush=True)
     results["sfm"] = {
-        k: v for k, v in run_sfm(ws, scene["photos"]).items() if not isinstance(v, (list, dict))
+        k: v
+        for k, v in run_sfm(ws, scene["photos"], scene.get("make")).items()
+        if not isinstance(v, (list, dict))
     }
     for method in methods.split(","):
-        for budget in (int(b) for b in budgets.split(",")):
+        chosen = [int(b) for b in budgets.split(",")] if budgets else BUDGETS.get(method, (600,))
+        for budget in chosen:
             done = partial / f"{name}-{method}-{budget}.json"
             if reuse and done.exists():
                 results["runs"].append(json.loads(done.read_text()))

@@ -28,16 +28,18 @@ DEFAULT_PEAK_THRESHOLD = 0.02 / 3
 SIFT_UPSAMPLE_BELOW = 800  # px, longer side after the max_image_size downscale
 EXTRACTION_CHUNK = 8  # images per extract_features call: progress granularity vs. thread start-up
 MATCHING_CHUNK = 150  # image pairs per match_image_pairs call
-# The incremental mapper's global bundle adjustments, the bulk of mapping on hundreds of photos
-# (Schönberger & Frahm 2016, Sec. 4.5). COLMAP adjusts the whole model each time it grew by 10 %,
-# repeats each adjustment up to 5 times with re-triangulation in between, and adjusts every
-# point. Local adjustments keep each new image right in between and `refine_intrinsics` ends
-# with a full adjustment, so recon adjusts globally every 50 % of growth, once each time,
-# leaving out points whose cameras are already well covered by others (COLMAP's
-# `ba_global_ignore_redundant_points3D`): the same final poses for a fraction of the time
-# (bench/results/2026-11-29-sfm-speed.md).
-GLOBAL_BA_GROWTH = 1.5
-GLOBAL_BA_REFINEMENTS = 1
+# The incremental mapper's global bundle adjustments (Schönberger & Frahm 2016, Sec. 4.5).
+# COLMAP adjusts the whole model each time it grew by 10 % and repeats each adjustment up to
+# 5 times with re-triangulation in between. Local adjustments keep each new image right in
+# between and `refine_intrinsics` ends with a full adjustment, so recon adjusts globally every
+# 30 % of growth. From LIGHT_GLOBAL_BA_IMAGES photos on, where these adjustments are most of
+# the mapping time, every 50 %, once each time, leaving out points whose cameras are already
+# well covered by others (COLMAP's `ba_global_ignore_redundant_points3D`); on a small model
+# that schedule saves seconds and costs a little accuracy (bench/results/2026-11-29-sfm-speed.md).
+GLOBAL_BA_GROWTH = 1.3
+LIGHT_GLOBAL_BA_IMAGES = 150
+LIGHT_GLOBAL_BA_GROWTH = 1.5
+LIGHT_GLOBAL_BA_REFINEMENTS = 1
 
 
 @dataclass(frozen=True)
@@ -229,9 +231,12 @@ def incremental_options(
     pipeline.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
     pipeline.mapper.abs_pose_min_inlier_ratio = options.abs_pose_min_inlier_ratio
     pipeline.mapper.init_min_tri_angle = options.init_min_tri_angle
-    pipeline.ba_global_frames_ratio = pipeline.ba_global_points_ratio = GLOBAL_BA_GROWTH
-    pipeline.ba_global_max_refinements = GLOBAL_BA_REFINEMENTS
-    pipeline.mapper.ba_global_ignore_redundant_points3D = True
+    light = len(names) >= LIGHT_GLOBAL_BA_IMAGES
+    growth = LIGHT_GLOBAL_BA_GROWTH if light else GLOBAL_BA_GROWTH
+    pipeline.ba_global_frames_ratio = pipeline.ba_global_points_ratio = growth
+    if light:
+        pipeline.ba_global_max_refinements = LIGHT_GLOBAL_BA_REFINEMENTS
+        pipeline.mapper.ba_global_ignore_redundant_points3D = True
     # Small captures are still worth a model: COLMAP's default refuses models under 10 images.
     pipeline.min_model_size = min(10, max(2, len(names) // 2))
     return pipeline

@@ -80,6 +80,20 @@ def test_attempt_ladder():
     assert attempt_ladder(SfmConfig(matcher="sequential"), 40)[0].matcher == "sequential"
 
 
+def test_global_adjustments_are_lighter_only_on_many_photos():
+    """Under LIGHT_GLOBAL_BA_IMAGES photos: every 30 % of growth with COLMAP's refinements over
+    all points; from there on every 50 %, one refinement, redundant points left out."""
+    first = attempt_ladder(SfmConfig(), 67)[0]
+    small = steps.incremental_options(first, [f"{i}.jpg" for i in range(67)], 0, 1)
+    many = steps.incremental_options(first, [f"{i}.jpg" for i in range(150)], 0, 1)
+    assert small.ba_global_frames_ratio == small.ba_global_points_ratio == 1.3
+    assert small.ba_global_max_refinements == 5  # COLMAP's own
+    assert not small.mapper.ba_global_ignore_redundant_points3D
+    assert many.ba_global_frames_ratio == many.ba_global_points_ratio == 1.5
+    assert many.ba_global_max_refinements == 1
+    assert many.mapper.ba_global_ignore_redundant_points3D
+
+
 def test_low_parallax_retry_changes_only_the_initial_pair_angle():
     """A capture with no initial pair at COLMAP's 16 degrees (forward-facing) is mapped again
     from the same features and matches with 4 degrees; never lower than that."""
