@@ -24,7 +24,8 @@ from torch.profiler import ProfilerActivity, profile
 from recon.cameras import Cameras
 from recon.gaussians.render import composite_rgb, composite_rgbd, project_splats
 from recon.models.base import SceneInfo, TrainData
-from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_config import PRESETS, GaussiansConfig
 from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
 LABELS = (

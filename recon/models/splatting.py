@@ -1,5 +1,7 @@
-"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023, "3D
-Gaussian Splatting for Real-Time Radiance Field Rendering"), its flat config and presets, registered at import.
+"""`--method 3dgs`: the Gaussian-splatting Model (Kerbl et al. 2023, "3D Gaussian Splatting for
+Real-Time Radiance Field Rendering"), registered at import. Its flat config and presets are in
+`splatting_config`, the pure rules it applies to them (rates, extent, "auto") in
+`splatting_rules`.
 
 A training step renders one full training view (shuffled epoch order), takes
 loss = (1 - lambda) L1 + lambda (1 - SSIM), runs fused Adam with the reference's per-attribute
@@ -25,7 +27,7 @@ default: fox's sfm poses are already good to ~0.1 deg and refinement did not hel
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -35,7 +37,7 @@ from torch.profiler import record_function
 from recon import devices
 from recon.cameras import Cameras
 from recon.cameras.pose_refine import PoseCorrection, correct_cameras
-from recon.gaussians import densify, gsplat_glue, mcmc
+from recon.gaussians import densify, gsplat_glue
 from recon.gaussians.coarse_to_fine import c2f_factor
 from recon.gaussians.contribution import contributions, least_contributing
 from recon.gaussians.footprint import with_training_footprint
@@ -56,480 +58,37 @@ from recon.gaussians.render import (
     mean_compensation,
     project_splats,
 )
-from recon.gaussians.ssim import ssim
-from recon.gaussians.strategy import Strategy
 from recon.metrics.image import training_psnr
 from recon.models.appearance import AppearanceCorrection
 from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
 from recon.models.schedules import (
-    exp_decay_lr,
     fit_schedules,
     refit_schedules,
     schedule_state,
     set_lr,
 )
-from recon.options import on_off_auto, opt
+from recon.models.splatting_config import (
+    EXTENT_RULES,
+    PRESETS,
+    SCHEDULE_FRACTIONS,
+    GaussiansConfig,
+    schedule_fractions,
+)
+from recon.models.splatting_rules import (
+    anneal_factor,
+    densify_strategy,
+    means_lr,
+    photometric_loss,
+    pose_lr,
+    pose_probation_end,
+    prune_fraction,
+    scene_extent,
+    scene_lrs,
+    uses_antialiasing,
+    uses_appearance,
+    view_for_step,
+)
 from recon.volrend import surface_depth
-
-# A capture whose camera extent is below this fraction of the median depth of its SfM points
-# is seen from a small baseline (all cameras looking one way: a forward-facing capture)
-FORWARD_FACING_RATIO = 0.5
-EXTENT_RULES = ("auto", "cameras", "depth")
-
-
-# How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`,
-# schedule_fit "tuned": the fast preset's; "reference" scales the config's own schedules,
-# `schedule_fractions`): with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
-# opacity_reset_interval 560, sh_degree_interval 320.
-# measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
-# until 0.7 of the run with the means lr decayed over the whole run beats the lego-tuned steps
-# (30.66 against 29.38 dB) and shrinking everything by the same factor (30.51 dB, far fewer
-# Gaussians, LPIPS 0.160 against 0.140).
-SCHEDULE_FRACTIONS = {
-    "lr_decay_steps": 1.0,
-    "densify_stop": 0.7,
-    "opacity_reset_interval": 0.35,
-    "sh_degree_interval": 0.2,
-    "relocate_stop": 0.85,
-}
-
-
-SCHEDULE_FITS = ("reference", "tuned")
-
-_DENSIFY = densify.DensifyStrategy  # the densification defaults have one source: the strategy
-
-
-@dataclass(frozen=True)
-class GaussiansConfig:
-    """3D Gaussian splatting. Defaults are the reference's (the "paper" preset); "fast" rescales
-    the schedules to a CPU run of a few thousand steps, doubles the rates of the means,
-    scales and colours and, on real captures, anneals all but the means' over the run's
-    second half."""
-
-    init: str = opt("sfm", "sfm (SceneInfo.points; random if there are none) | random")
-    init_points: int = opt(100_000, "random initial Gaussians in the scene box")
-    init_from_images: bool = opt(False, "random init: sample the visual hull, colours from images")
-    init_far_fraction: float = opt(
-        0.5, "unbounded scenes: share of image init points in a far shell"
-    )
-    init_far_factor: float = opt(
-        3.0, "the far shell's outer / inner radius (inner: beyond the cameras)"
-    )
-    init_ply: str = opt(
-        "", "start from this INRIA splat PLY (world units, as `recon export` writes)"
-    )
-    init_opacity: float = opt(0.1, "initial opacity of every Gaussian")
-    sh_degree: int = opt(3, "largest SH degree of the colours")
-    sh_degree_interval: int = opt(1000, "raise the active SH degree by one every this many steps")
-    near_plane: float = opt(0.01, "Gaussians with camera z <= this are culled")
-    ssim_weight: float = opt(0.2, "lambda in (1 - lambda) L1 + lambda (1 - SSIM)")
-    lr_means: float = opt(0.00016, "means lr at step 0, times the scene extent (`extent`)")
-    lr_means_final: float = opt(0.0000016, "means lr after lr_decay_steps, times the scene extent")
-    lr_decay_steps: int = opt(30_000, "steps of the exponential decay of the means lr")
-    lr_sh_dc: float = opt(0.0025, "lr of the degree-0 SH coefficients")
-    lr_sh_rest: float = opt(0.000125, "lr of the degree 1-3 SH coefficients (dc / 20)")
-    lr_opacity: float = opt(0.05, "lr of the opacity logits")
-    lr_scales: float = opt(0.005, "lr of the log-scales")
-    lr_quats: float = opt(0.001, "lr of the quaternions")
-    lr_anneal: float = opt(
-        1.0,
-        "the rates of the scales, rotations, opacities and colours at lr_decay_steps, as a fraction of their own (log-linear decay over its second half; 1 = constant, as the reference; -1 = auto: 0.1 on unbounded captures, 1 on bounded scenes)",
-    )
-    densify_grad_threshold: float = opt(
-        _DENSIFY.grad_threshold, "mean NDC 2D-mean gradient that triggers densify"
-    )
-    densify_dense_fraction: float = opt(
-        _DENSIFY.dense_fraction, "clone below this x extent (max scale), split above"
-    )
-    densify_start: int = opt(_DENSIFY.start, "first densification step")
-    densify_stop: int = opt(_DENSIFY.stop, "no densification or opacity reset from this step")
-    densify_interval: int = opt(_DENSIFY.interval, "steps between densifications")
-    opacity_reset_interval: int = opt(_DENSIFY.reset_interval, "steps between opacity resets")
-    prune_opacity: float = opt(_DENSIFY.prune_opacity, "prune Gaussians less opaque than this")
-    prune_screen_fraction: float = opt(
-        _DENSIFY.prune_screen_fraction, "prune if screen radius > this x image size (after a reset)"
-    )
-    prune_world_fraction: float = opt(
-        _DENSIFY.prune_world_fraction, "prune if max scale > this x extent (after a reset)"
-    )
-    max_gaussians: int = opt(_DENSIFY.max_gaussians, "densification stops growing the count here")
-    clone_opacity_correction: bool = opt(
-        _DENSIFY.clone_opacity_correction,
-        "a clone and its original share the opacity (1 - sqrt(1 - o))",
-    )
-    densify_abs_grad: str = opt(
-        "off",
-        "densify by the absolute per-pixel 2D-mean gradients (AbsGS): on | off | auto (on for unbounded captures)",
-    )
-    densify_abs_grad_threshold: float = opt(
-        0.0006, "the densify threshold when densifying by absolute gradients"
-    )
-    densify_pixel_weights: bool = opt(
-        _DENSIFY.pixel_weights,
-        "average the densify gradient over views weighted by each view's screen area (Pixel-GS)",
-    )
-    densify_mode: str = opt(
-        "adc",
-        "how the Gaussian count is controlled: adc (clone, split, prune; Kerbl et al.) | mcmc (relocation of dead Gaussians, growth to max_gaussians, position noise; Kheradmand et al.) | auto (mcmc for unbounded captures)",
-    )
-    mcmc_growth: float = opt(0.05, "mcmc: each refinement adds this fraction of the count")
-    mcmc_noise_lr: float = opt(5e5, "mcmc: the position noise's scale, times the means lr")
-    mcmc_opacity_reg: float = opt(
-        mcmc.McmcStrategy.opacity_reg, "mcmc: weight of the L1 penalty on the opacities"
-    )
-    mcmc_scale_reg: float = opt(
-        mcmc.McmcStrategy.scale_reg, "mcmc: weight of the L1 penalty on the scales"
-    )
-    relocate_stop: int = opt(25_000, "mcmc: no relocation or growth from this step on")
-    schedule_steps: int = opt(
-        0,
-        "the run's planned length (recon train sets it from the budget): longer step schedules are fitted into it (0 = as configured)",
-    )
-    schedule_fit: str = opt(
-        "reference",
-        "how step schedules longer than schedule_steps are fitted into it: reference (each scaled by schedule_steps / default_steps: the reference's proportions, densifying until half the run) | tuned (each ended at its share of the run in SCHEDULE_FRACTIONS, measured on CPU runs of a few thousand steps)",
-        choices=SCHEDULE_FITS,
-    )
-    c2f_factor: int = opt(
-        1, "coarse-to-fine: the first steps fit targets downscaled by this (1 = off)"
-    )
-    c2f_interval: int = opt(
-        250, "coarse-to-fine: steps at each coarse level (the factor halves after each)"
-    )
-    appearance: str = opt(
-        "off",
-        "per-image affine colour correction of the training photos: on | off | auto (on for unbounded captures)",
-    )
-    lr_appearance: float = opt(0.001, "lr of the appearance corrections")
-    prune_contribution: float = opt(
-        -1.0,
-        "when densification ends, drop this fraction of the Gaussians, those with the least blending weight over the training views (-1 = auto: 0.5 for bounded scenes, 0 for unbounded captures)",
-    )
-    pose_refine: bool = opt(False, "learn an SE(3) correction of each training camera's pose")
-    lr_pose: float = opt(
-        0.003, "lr of the pose corrections (radians and scene units), a step per visit of a camera"
-    )
-    lr_pose_final: float = opt(
-        0.00003, "pose lr at lr_decay_steps (log-linear decay over its second half)"
-    )
-    pose_refine_start: int = opt(0, "first step of the pose probation")
-    pose_probation: int = opt(
-        -1,
-        "steps during which the poses stay as given while their gradients are summed (-1 = pose_probation_passes passes over the training views; 0 = none: every camera is refined)",
-    )
-    # pose_probation_passes: passes over the training views of the pose probation (each
-    # camera's gradient summed over as many visits). Measured
-    # (bench/results/3dgs_pose_refine.md), the largest outlier ratio of an exact camera and of one off by 1 deg and 2 % of the scene: sample_data after 4 passes 2.1x /
-    # 5.9x, after 5.7 passes 2.4x / 9.7x, after 10 passes 2.8x / 16x; lego-200's 100 exact cameras
-    # after 4, 5 and 10 passes at most 4.1x, 4.4x and 4.1x. Released after 5 passes the perturbed
-    # camera comes back 7.6x / 20x in an 800-step run; after 10 passes the scene has fitted its
-    # wrong pose and it comes back only 1.0x / 2.3x (lr 3e-3). The fast preset's doubled scene rates
-    # (2026-11-28) fit the wrong pose sooner: released after 5 passes the camera came back only
-    # 3.3x / 6.7x, after 4 passes 6.7x / 15.6x (3 passes: 4.5x / 7.2x); lego-200's exact cameras at
-    # most 3.56x after 4 passes and 3.75x after 5 with those rates, so none is released. With the
-    # reference's rates 4 passes are too few (the camera stays frozen), so the default (the paper
-    # preset's) is 5 and the fast preset's 4.
-    pose_probation_passes: int = opt(5, "the probation's passes when pose_probation is -1")
-    pose_release_ratio: float = opt(
-        6.0,
-        "after the probation only cameras whose mean pose gradient is more than this many times the median camera's are refined; the others keep their given poses (0 = refine every camera, no probation)",
-    )
-    antialiased: str = opt(
-        "auto",
-        "on | off | auto (on for real captures, off for synthetic scenes): scale each splat's opacity by sqrt(det Sigma / det(Sigma + 0.3 I)) so the dilation keeps its integral (gsplat's antialiased mode, Mip-Splatting's 2D filter normalisation); exports bake its mean over the training views into the opacities, as other viewers do not compensate",
-    )
-    filter_3d: float = opt(
-        0.0,
-        "Mip-Splatting's 3D smoothing filter: each Gaussian convolved with an isotropic one of this many squared training sampling intervals (0 = off; the paper's 0.2). Exports carry it baked in, so an init_ply from one should train with 0",
-    )
-    footprint_filter: bool = opt(
-        True,
-        "renders finer than the training views keep each splat's training footprint: its 0.3 px^2 dilation held in world units (0.3 (f T / z)^2 px^2 where the render samples a Gaussian finer than its finest training view did, T that view's sampling interval); renders at the training size are unchanged",
-    )
-    extent: str = opt(
-        "auto",
-        "the scene length the means lr and the densification's size thresholds scale with: cameras (the reference's camera extent) | depth (the SfM points' median depth) | auto (depth for a forward-facing capture, whose camera spread is under half that depth)",
-        choices=EXTENT_RULES,
-    )
-    seed: int = opt(0, "seeds random init, view order and split sampling")
-    default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
-
-
-PRESETS = {
-    "paper": {"prune_contribution": 0.0},
-    "fast": {
-        "init_points": 4000,
-        "init_from_images": True,
-        "sh_degree_interval": 500,
-        "lr_decay_steps": 5000,
-        "densify_start": 100,
-        "densify_stop": 2000,
-        "relocate_stop": 2500,  # mcmc: the paper's 25 k of 30 k steps, at default_steps
-        "densify_interval": 100,
-        "opacity_reset_interval": 1000,
-        "max_gaussians": 200_000,
-        "default_steps": 3000,
-        "schedule_fit": "tuned",
-        "clone_opacity_correction": True,
-        # a lower split/clone threshold than the reference's 0.0002: at 0.0002 the count stops
-        # growing long before a CPU run ends (fox: 93 k Gaussians at 10 min, 96 k at 30); with
-        # 0.00015 (bench/results/3dgs_c2f_ab.md, 10 min each) fox keeps 131 k (LPIPS 0.0996
-        # against 0.1053, 32.33 against 32.52 dB; 2 min 27.42 against 27.09 dB) and lego-200
-        # 57 k (33.43 against 33.22 dB, LPIPS 0.0108 against 0.0118)
-        "densify_grad_threshold": 0.00015,
-        # twice the reference's rates for the means, scales and colours (opacity and rotations
-        # unchanged): they are tuned for 30 k steps and a CPU run makes 1.5-8 k. Measured in
-        # pairs, same seed (bench/results/3dgs_lr_scale.md): fox-real 2 min +0.13 dB, 10 min
-        # +0.12 and -0.04 dB, 30 min +0.56 (2.8 k steps) and +0.06 dB (4.8 k steps), LPIPS lower
-        # in all five; lego-200 10 min +0.89 dB (34.00, LPIPS 0.0089 against 0.0118); x4 lost
-        # 0.22 dB on fox at 10 min
-        "lr_means": 0.00032,
-        "lr_means_final": 0.0000032,
-        "lr_scales": 0.01,
-        "lr_sh_dc": 0.005,
-        "lr_sh_rest": 0.00025,
-        # and on real captures all but the means' (which decay 100x over the run) anneal to a
-        # tenth over the run's second half, in place of the reference's constant rates: one
-        # image a step at these rates leaves the opacities and scales jittering (fox-real +0.39
-        # and +0.47 dB at 10 and 30 min; lego-200 -0.39 dB, so auto; see anneal_factor)
-        "lr_anneal": -1.0,
-        # at these rates the scene fits a wrong camera pose sooner: a shorter pose probation
-        # (bench/results/3dgs_pose_refine.md; see pose_probation_passes above)
-        "pose_probation_passes": 4,
-        # no coarse-to-fine: at equal wall time on fox it saved 34 s over the first 500 steps
-        # and lost them again to larger Gaussians (same steps, 32.48 vs 32.52 dB without;
-        # bench/results/3dgs_c2f_ab.md)
-        "appearance": "auto",
-        # AbsGS densification on real captures only: fox-real 10 min +0.11 dB, LPIPS 0.115
-        # against 0.120; lego-200 -0.15 dB (bench/results/3dgs_absgrad.md)
-        "densify_abs_grad": "auto",
-    },
-}
-# What `--preset auto` means on a GPU: the reference's settings and schedules (scaled into the
-# planned steps), plus what a real capture needs that the reference's synthetic and curated
-# scenes did not: per-photo exposure compensation, AbsGS densification and the annealed rates,
-# each "auto" (real captures only: a synthetic scene trains as with "paper"). On fox at 3,000
-# steps they gave +0.6 dB over "paper" (bench/results/2026-11-28-3dgs-gpu-preset.md).
-PRESETS["gpu"] = {
-    **PRESETS["paper"],
-    "appearance": "auto",
-    "densify_abs_grad": "auto",
-    "lr_anneal": -1.0,
-}
-
-
-def schedule_fractions(config: GaussiansConfig) -> dict[str, float]:
-    """How late in a planned run each step schedule may end (`fit_schedules`): schedule_fit
-    "tuned" -> SCHEDULE_FRACTIONS; "reference" -> each schedule's own share of default_steps,
-    so a planned run shorter than that keeps the config's proportions (the paper preset, INRIA's
-    30,000 steps: the means' lr decayed over the whole run, densification until half of it, an
-    opacity reset every tenth, an SH degree more every thirtieth, mcmc relocation until 5/6).
-    Example: the paper preset planned at 12,000 steps -> lr_decay_steps 12,000, densify_stop
-    6,000, opacity_reset_interval 1,200, sh_degree_interval 400, relocate_stop 10,000."""
-    if config.schedule_fit == "tuned":
-        return SCHEDULE_FRACTIONS
-    if config.schedule_fit != "reference":
-        raise ValueError(
-            f"schedule_fit must be one of {', '.join(SCHEDULE_FITS)}, got {config.schedule_fit!r}"
-        )
-    return {name: getattr(config, name) / config.default_steps for name in SCHEDULE_FRACTIONS}
-
-
-def photometric_loss(rgb: Tensor, target: Tensor, ssim_weight: float) -> Tensor:
-    """(1 - lambda) |rgb - target|_1 + lambda (1 - SSIM(rgb, target)), SSIM with the 11x11
-    Gaussian window, sigma 1.5, valid windows (`ssim.py`, the twin of pytorch_msssim).
-    (H, W, 3) -> ()."""
-    l1 = (rgb - target).abs().mean()
-    if ssim_weight == 0:
-        return l1
-    s = ssim(rgb.permute(2, 0, 1), target.permute(2, 0, 1))
-    return (1 - ssim_weight) * l1 + ssim_weight * (1 - s)
-
-
-def camera_extent(cameras: Cameras) -> float:
-    """1.1 x the largest distance of a camera centre from their mean (the reference's
-    `cameras_extent`); 1 for a single camera."""
-    centers = cameras.centers.double()
-    radius = (centers - centers.mean(0)).norm(dim=-1).max().item()
-    return 1.1 * radius if radius > 1e-9 else 1.0
-
-
-def median_point_depth(cameras: Cameras, points: Tensor, max_points: int = 20_000) -> float:
-    """The median z-depth of `points` (P, 3) over the cameras (C) they are in front of (at most
-    `max_points`, evenly strided); 0 when none is in front of any camera."""
-    pts = points[:: max(1, len(points) // max_points)].double()
-    M = cameras.cam_from_world.double()
-    z = (pts @ M[:, :3, :3].transpose(1, 2))[..., 2] + M[:, None, :3, 3][..., 2]  # (C, P)
-    z = z[z > 0]
-    return float(z.median()) if len(z) else 0.0
-
-
-def scene_extent(cameras: Cameras, points: Tensor | None, rule: str) -> float:
-    """The length the means' lr and the densification's size thresholds are measured in:
-    "cameras" -> `camera_extent` (the reference's; for a capture around an object, about the
-    object's distance); "depth" -> 1.1 x the median depth of the SfM points; "auto" -> "depth"
-    for a forward-facing capture (camera extent < FORWARD_FACING_RATIO x that depth, where the
-    cameras' spread says nothing of the scene's size: llff_flower 0.073 against 0.81), else
-    "cameras". Without points, "cameras"."""
-    if rule not in EXTENT_RULES:
-        raise ValueError(f"extent must be one of {', '.join(EXTENT_RULES)}, got {rule!r}")
-    cams = camera_extent(cameras)
-    if rule == "cameras" or points is None or len(points) == 0:
-        return cams
-    depth = 1.1 * median_point_depth(cameras, points)
-    if depth <= 0:
-        return cams
-    if rule == "depth" or cams < FORWARD_FACING_RATIO * depth:
-        return depth
-    return cams
-
-
-def means_lr(config: GaussiansConfig, step: int, extent: float) -> float:
-    """Log-linear decay lr_means -> lr_means_final over lr_decay_steps, times the extent."""
-    return extent * exp_decay_lr(
-        step, config.lr_means, config.lr_means_final, config.lr_decay_steps
-    )
-
-
-SCENE_RATES = {  # parameter group -> its config rate; the means have their own decay (means_lr)
-    "quats": "lr_quats",
-    "log_scales": "lr_scales",
-    "opacity_logits": "lr_opacity",
-    "sh_dc": "lr_sh_dc",
-    "sh_rest": "lr_sh_rest",
-}
-
-
-def anneal_factor(config: GaussiansConfig, unbounded: bool) -> float:
-    """lr_anneal, or with -1 (auto) 0.1 on unbounded captures and 1 (constant rates) on bounded
-    scenes. Measured (bench/results/3dgs_lr_anneal.md), 0.1 against 1: fox-real 10 min 32.70
-    against 32.31 dB, 30 min 33.51 against 33.04; lego-200 10 min 33.61 against 34.00."""
-    if config.lr_anneal == -1.0:
-        return 0.1 if unbounded else 1.0
-    if not config.lr_anneal > 0:
-        raise ValueError(f"lr_anneal must be > 0 or -1 (auto), got {config.lr_anneal}")
-    return config.lr_anneal
-
-
-def scene_lrs(config: GaussiansConfig, step: int, anneal: float) -> dict[str, float]:
-    """The rates of the non-position parameter groups at `step`: their config values until
-    lr_decay_steps / 2, then a log-linear decay to `anneal` times those at lr_decay_steps.
-    Example: lr_opacity 0.05, anneal 0.1, lr_decay_steps 1,000 -> 0.05 at step 500, 0.0158
-    at step 750, 0.005 from step 1,000 on."""
-    begin = config.lr_decay_steps // 2
-    rates = {}
-    for group, field in SCENE_RATES.items():
-        lr = getattr(config, field)
-        rates[group] = exp_decay_lr(step, lr, lr * anneal, config.lr_decay_steps, begin)
-    return rates
-
-
-def pose_lr(config: GaussiansConfig, step: int) -> float:
-    """lr_pose over the first half of [pose_refine_start, lr_decay_steps], then a log-linear
-    decay to lr_pose_final at its end: a camera is visited once per pass over the training
-    views and needs tens of updates to come back, so the decay waits; then it stops the
-    corrections' jitter."""
-    begin = (config.pose_refine_start + config.lr_decay_steps) // 2
-    return exp_decay_lr(step, config.lr_pose, config.lr_pose_final, config.lr_decay_steps, begin)
-
-
-def pose_probation_end(config: GaussiansConfig, num_cameras: int) -> int:
-    """The first step after the pose probation: pose_refine_start + pose_probation steps
-    (-1: pose_probation_passes passes over the num_cameras training views); with
-    pose_release_ratio 0 there is none (pose_refine_start). Example: 35 cameras, the
-    defaults (5 passes) -> 175."""
-    if config.pose_release_ratio <= 0:
-        return config.pose_refine_start
-    steps = (
-        config.pose_probation_passes * num_cameras
-        if config.pose_probation < 0
-        else config.pose_probation
-    )
-    return config.pose_refine_start + steps
-
-
-def prune_fraction(config: GaussiansConfig, scene: SceneInfo) -> float:
-    """prune_contribution, or with -1 (auto) 0.5 for bounded scenes and 0 for unbounded ones.
-    Measured at 10 min (bench/results/3dgs_prune_contribution.md): lego-200 keeps 28.3 k
-    Gaussians instead of 56.7 k at 33.50 against 33.53 dB (LPIPS 0.0104 both), but fox-real
-    loses 0.43 dB (31.99 against 32.43): its short runs leave too few steps to refill the
-    background. With densify_mode mcmc, auto is 0: max_gaussians is already the budget."""
-    if config.prune_contribution != -1.0:
-        return config.prune_contribution
-    return 0.0 if scene.unbounded or uses_mcmc(config, bool(scene.unbounded)) else 0.5
-
-
-def uses_antialiasing(config: GaussiansConfig, unbounded: bool) -> bool:
-    """on | off, or auto: on for unbounded captures (real photos: at equal steps on fox-real it
-    scores higher at the training size and, with the footprint filter, at the photos' size no
-    worse than the training-size render upsampled, where the plain model loses 0.7 dB), off for
-    bounded synthetic scenes (lego-200: a worse LPIPS). true / false: configs saved when this
-    was a boolean."""
-    value = {True: "on", False: "off", "true": "on", "false": "off"}.get(
-        config.antialiased, config.antialiased
-    )
-    return on_off_auto(value, "antialiased", unbounded)
-
-
-def uses_appearance(config: GaussiansConfig, scene: SceneInfo) -> bool:
-    """on | off, or auto: on for unbounded captures (real photos, whose exposure and white
-    balance vary), off for bounded scenes with alpha (synthetic renders of known exposure)."""
-    return on_off_auto(config.appearance, "appearance", bool(scene.unbounded))
-
-
-def view_for_step(step: int, n_views: int, seed: int) -> int:
-    """Shuffled epochs: a fresh permutation of the views every n_views steps, a pure function
-    of (step, seed) so resumed runs visit the same views."""
-    gen = torch.Generator().manual_seed(seed * 1_000_003 + step // n_views)
-    return int(torch.randperm(n_views, generator=gen)[step % n_views])
-
-
-def uses_abs_grad(config: GaussiansConfig, unbounded: bool) -> bool:
-    """on | off, or auto: on for unbounded captures. At 10 min (bench/results/3dgs_absgrad.md)
-    fox-real gains 0.11 dB and LPIPS 0.115 against 0.120 (threshold 0.0006; 0.0004 grew 30 %
-    more Gaussians, made fewer steps and lost PSNR), while lego-200 loses 0.15 dB."""
-    return on_off_auto(config.densify_abs_grad, "densify_abs_grad", unbounded)
-
-
-def uses_mcmc(config: GaussiansConfig, unbounded: bool) -> bool:
-    """densify_mode adc | mcmc, or auto: mcmc for unbounded captures."""
-    modes = {"adc": False, "mcmc": True, "auto": unbounded}
-    if config.densify_mode not in modes:
-        raise ValueError(f"densify_mode must be adc, mcmc or auto, got {config.densify_mode!r}")
-    return modes[config.densify_mode]
-
-
-def densify_strategy(config: GaussiansConfig, unbounded: bool) -> Strategy:
-    if uses_mcmc(config, unbounded):
-        return mcmc.McmcStrategy(
-            cap=config.max_gaussians,
-            growth=config.mcmc_growth,
-            min_opacity=config.prune_opacity,
-            noise_lr=config.mcmc_noise_lr,
-            start=config.densify_start,
-            stop=config.relocate_stop,
-            interval=config.densify_interval,
-            opacity_reg=config.mcmc_opacity_reg,
-            scale_reg=config.mcmc_scale_reg,
-        )
-    abs_grad = uses_abs_grad(config, unbounded)
-    return densify.DensifyStrategy(
-        grad_threshold=(
-            config.densify_abs_grad_threshold if abs_grad else config.densify_grad_threshold
-        ),
-        dense_fraction=config.densify_dense_fraction,
-        prune_opacity=config.prune_opacity,
-        prune_screen_fraction=config.prune_screen_fraction,
-        prune_world_fraction=config.prune_world_fraction,
-        start=config.densify_start,
-        stop=config.densify_stop,
-        interval=config.densify_interval,
-        reset_interval=config.opacity_reset_interval,
-        max_gaussians=config.max_gaussians,
-        clone_opacity_correction=config.clone_opacity_correction,
-        abs_grad=abs_grad,
-        pixel_weights=config.densify_pixel_weights,
-    )
 
 
 class GaussianModel(Model):

@@ -21,7 +21,9 @@ from recon.cameras.se3 import se3_exp, se3_log, so3_exp
 from recon.gaussians.render import composite_rgbd, project_splats
 from recon.metrics.pose import rotation_angle_deg
 from recon.models.base import TrainData
-from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig, pose_probation_end
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_config import PRESETS, GaussiansConfig
+from recon.models.splatting_rules import pose_probation_end
 from recon.workspace import Workspace
 from recon.workspace.scene import load_scene, load_train_data
 from tests.conftest import SAMPLE_DATA, recon_cli

@@ -10,7 +10,8 @@ from recon.gaussians.contribution import contributions, least_contributing, view
 from recon.gaussians.rasterize import rasterize_features
 from recon.gaussians.rasterize_reference import rasterize_features_reference
 from recon.gaussians.render import project_splats
-from recon.models.splatting import GaussianModel, prune_fraction
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_rules import prune_fraction
 from tests.gaussians.test_rasterize import random_splats
 from tests.models.test_splatting import config, synthetic_scene
 

@@ -284,7 +284,7 @@ def test_an_ordinary_3dgs_step_through_the_glue_makes_no_host_round_trip(torch_g
     import inspect
 
     from recon import devices
-    from recon.models import splatting
+    from recon.models import splatting, splatting_rules
     from tests.models.test_device_clean import HostRoundTrips
     from tests.models.test_splatting import config, synthetic_scene
 
@@ -298,8 +298,8 @@ def test_an_ordinary_3dgs_step_through_the_glue_makes_no_host_round_trip(torch_g
     with mode:
         for step in range(12, 20):
             model.train_step(data, step)
-    lines, first = inspect.getsourcelines(splatting.view_for_step)
+    lines, first = inspect.getsourcelines(splatting_rules.view_for_step)
     host_only = {
-        f"{inspect.getsourcefile(splatting)}:{n}" for n in range(first, first + len(lines))
+        f"{inspect.getsourcefile(splatting_rules)}:{n}" for n in range(first, first + len(lines))
     }
     assert mode.seen and {where for _, where in mode.seen} <= host_only, mode.seen

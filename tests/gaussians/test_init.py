@@ -17,7 +17,8 @@ from recon.gaussians.init import (
     sample_in_shell,
 )
 from recon.models.base import SceneInfo, TrainData
-from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_config import PRESETS, GaussiansConfig
 from recon.synthetic.splats import orbit_cameras
 
 

@@ -10,7 +10,8 @@ from recon.gaussians.init import gaussians_from_splat_ply, sh_degree_in_use
 from recon.gaussians.ply import write_splat_ply
 from recon.gaussians.transform import gaussians_to_world
 from recon.models.base import SceneInfo
-from recon.models.splatting import GaussianModel, GaussiansConfig
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_config import GaussiansConfig
 from recon.synthetic.splats import orbit_cameras, shell_gaussians
 
 

@@ -11,7 +11,8 @@ from torch import nn
 from recon.gaussians import mcmc
 from recon.gaussians.optim import make_adam
 from recon.gaussians.projection import rotation_from_quats
-from recon.models.splatting import GaussianModel, densify_strategy
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_rules import densify_strategy
 from tests.models.test_splatting import config, straight_and_resumed, synthetic_scene
 
 

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import torch
 
 from recon.gaussians import densify, mcmc
-from recon.models.splatting import densify_strategy
+from recon.models.splatting_rules import densify_strategy
 from tests.gaussians.test_mcmc import _params
 from tests.models.test_splatting import config
 

@@ -54,7 +54,7 @@ def test_a_saved_config_with_a_removed_option_still_loads():
     probation) loads with that key dropped; tuples come back as tuples."""
     from recon.models.plenoxel import PlenoxelConfig
     from recon.models.registry import config_from_json
-    from recon.models.splatting import GaussiansConfig
+    from recon.models.splatting_config import GaussiansConfig
 
     saved = {"pose_refine": True, "pose_snap_px": 1.5, "pose_snap_start": -1}
     assert GaussiansConfig(**config_from_json(GaussiansConfig, saved)).pose_refine

@@ -13,7 +13,8 @@ from recon.cameras.look_at import look_at
 from recon.fields.sh import C0
 from recon.gaussians.render import composite_rgb, mean_compensation, project_splats
 from recon.models.base import METHODS, SceneInfo, TrainData
-from recon.models.splatting import PRESETS, GaussianModel, GaussiansConfig
+from recon.models.splatting import GaussianModel
+from recon.models.splatting_config import PRESETS, GaussiansConfig
 from recon.options import field_help
 
 
@@ -188,31 +189,11 @@ def test_registered_with_flat_documented_config():
         GaussiansConfig(**preset)
 
 
-def test_fit_schedules_worked_example():
-    from recon.models.schedules import fit_schedules
-    from recon.models.splatting import SCHEDULE_FRACTIONS
-
-    def fit(config):
-        return fit_schedules(config, SCHEDULE_FRACTIONS)
-
-    fast = GaussiansConfig(**PRESETS["fast"])
-    fitted = fit(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}))
-    assert (
-        fitted.lr_decay_steps,
-        fitted.densify_stop,
-        fitted.opacity_reset_interval,
-        fitted.sh_degree_interval,
-    ) == (1600, 1120, 560, 320)
-    assert fit(fast) == fast  # schedule_steps 0: as configured
-    long = GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 6000})  # lego-200, 10 min
-    assert fit(long) == long  # a run longer than the schedules keeps them
-
-
 def test_the_paper_preset_scales_the_reference_schedule_to_the_planned_run():
     """schedule_fit reference (the paper preset, a CUDA run's default): INRIA's 30,000-step
     proportions kept in a shorter plan; the fast preset ends each at its tuned share; a plan
     as long as the reference keeps it; a re-plan refits with the same proportions."""
-    from recon.models.splatting import SCHEDULE_FRACTIONS, schedule_fractions
+    from recon.models.splatting_config import SCHEDULE_FRACTIONS, schedule_fractions
 
     paper = GaussiansConfig(**{**PRESETS["paper"], "schedule_steps": 12_000})
     fractions = schedule_fractions(paper)
@@ -249,7 +230,7 @@ def test_scene_lrs_anneal_in_the_second_half_of_the_decay():
     0.05 * 0.1^0.5 = 0.0158 at 750, 0.005 from 1,000 on), every group alike; lr_anneal 1 keeps
     the reference's constant rates and auto (-1) anneals unbounded captures only; a training
     step sets the rates in the optimizer."""
-    from recon.models.splatting import SCENE_RATES, anneal_factor, scene_lrs
+    from recon.models.splatting_rules import SCENE_RATES, anneal_factor, scene_lrs
 
     c = GaussiansConfig(lr_opacity=0.05, lr_decay_steps=1000)
     assert scene_lrs(c, 0, 0.1)["opacity_logits"] == scene_lrs(c, 500, 0.1)["opacity_logits"]
@@ -379,7 +360,7 @@ def test_appearance_learns_per_image_exposure_and_renders_with_the_nearest_corre
 
 
 def test_appearance_auto_follows_the_kind_of_scene():
-    from recon.models.splatting import uses_appearance
+    from recon.models.splatting_rules import uses_appearance
 
     scene, _ = synthetic_scene()
     cfg = config(appearance="auto")
@@ -443,40 +424,3 @@ def test_antialiased_splats_bake_the_mean_compensation_given_the_training_camera
     plain = GaussianModel(config(), scene)
     plain.load_state_dict(model.state_dict())
     assert np.array_equal(plain.splats(data.cameras)["opacity_logits"], raw)
-
-
-def _row_of_cameras(xs, focal=50.0, size=32):
-    """Cameras at (x, 0, 0) looking down +z (OpenCV), world = camera frame shifted by x."""
-    n = len(xs)
-    cfw = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
-    cfw[:, 0, 3] = -torch.tensor(xs, dtype=torch.float64)
-    K = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1]], dtype=torch.float64)
-    wh = torch.full((n,), size)
-    return Cameras(K.expand(n, 3, 3).clone(), cfw, wh, wh.clone())
-
-
-def test_scene_extent_of_a_forward_facing_capture_is_its_depth():
-    from recon.models.splatting import median_point_depth, scene_extent
-
-    cams = _row_of_cameras([-0.5, 0.0, 0.5])  # camera extent 1.1 x 0.5 = 0.55
-    points = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 4.0], [0.0, 0.0, 9.0], [0, 0, -1.0]])
-    assert median_point_depth(cams, points) == 4.0  # the point behind the cameras is left out
-    assert scene_extent(cams, points, "cameras") == pytest.approx(0.55)
-    assert scene_extent(cams, points, "depth") == pytest.approx(4.4)
-    assert scene_extent(cams, points, "auto") == pytest.approx(4.4)  # 0.55 < 0.5 x 4.4
-    near = points * torch.tensor([1.0, 1.0, 0.2])  # depths 0.4, 0.8, 1.8: 0.55 >= 0.5 x 0.88
-    assert scene_extent(cams, near, "auto") == pytest.approx(0.55)
-    assert scene_extent(cams, None, "auto") == pytest.approx(0.55)
-    with pytest.raises(ValueError, match="extent must be one of"):
-        scene_extent(cams, points, "median")
-
-
-def test_antialiasing_is_on_for_real_captures_by_default():
-    from recon.models.splatting import uses_antialiasing
-
-    assert uses_antialiasing(config(), True) and not uses_antialiasing(config(), False)
-    for given, expected in ((True, True), (False, False), ("true", True), ("off", False)):
-        assert uses_antialiasing(config(antialiased=given), True) is expected  # saved booleans too
-        assert uses_antialiasing(config(antialiased=given), False) is expected
-    with pytest.raises(ValueError, match="antialiased must be on, off or auto"):
-        uses_antialiasing(config(antialiased="sometimes"), True)
