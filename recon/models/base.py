@@ -285,6 +285,9 @@ class ResolutionPolicy:
     pixels_per_s: float = 350e3  # training pixels (rays) per second on the reference machine
     pixels_per_step: float = 0.0  # pixels per step for a --steps run (0: one whole image per step)
     min_epochs: float = 30.0  # passes over every training pixel the method needs at one size
+    # passes are counted over at most this many views (0: all of them): beyond them a capture's
+    # views overlap, and more of them add viewpoints of the same surfaces, not more to fit
+    epoch_views: int = 0
     max_side: int = 1600  # longest image side trained on without a time budget
     # The step plan (`planned_steps`, which lays out the step schedules) may take a step's time
     # as affine in its pixels instead: step_overhead_s + pixels / step_pixels_per_s

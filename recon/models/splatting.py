@@ -568,6 +568,11 @@ RESOLUTION = ResolutionPolicy(
     pixels_per_s=450e3,
     pixels_per_step=0.0,
     min_epochs=30.0,
+    # a step fits one view; past ~100 views (lego's, more than fox's 58) 30 passes over every
+    # one would put a many-photo capture at a far coarser level for the same number of steps
+    # (spiral-300, 262 views, 10 min: 1/7) where the reference trains 30,000 steps whatever
+    # the number of views
+    epoch_views=100,
     max_side=1600,
     step_overhead_s=0.05,
     step_pixels_per_s=1.0e6,

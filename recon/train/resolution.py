@@ -59,6 +59,11 @@ def policy_step_pixels(width: int, height: int, policy: ResolutionPolicy) -> flo
     return policy.pixels_per_step or width * height
 
 
+def counted_views(n_views: int, policy: ResolutionPolicy) -> int:
+    """The views whose passes the rule counts: all n_views, or at most policy.epoch_views."""
+    return min(n_views, policy.epoch_views) if policy.epoch_views > 0 else n_views
+
+
 def epochs_at(
     width: int,
     height: int,
@@ -72,7 +77,7 @@ def epochs_at(
     `speed` (`throughput.pixels_per_s`). Only the bounds that depend on the size count: a
     --steps run of a method that trains on one whole image per step makes steps / n_views
     passes at any size. None: no such bound."""
-    pixels = n_views * width * height
+    pixels = counted_views(n_views, policy) * width * height
     bounds = []
     if time_budget_s > 0:
         rate = pixels_per_s(policy, policy_step_pixels(width, height, policy), speed)
@@ -168,8 +173,10 @@ def choose_resolution(
         if x
     )
     rate = pixels_per_s(policy, policy_step_pixels(*level_size(width, height, k), policy), speed)
+    counted = counted_views(n_views, policy)
+    views = f"{n_views}" if counted == n_views else f"{counted} (of {n_views})"
     why = (
-        f"{budget} at ~{rate / 1e3:.0f}k px/s give {epochs(k):.0f} passes over the {n_views} "
+        f"{budget} at ~{rate / 1e3:.0f}k px/s give {epochs(k):.0f} passes over {views} "
         f"training views at this size (>= {policy.min_epochs:g} wanted)"
     )
     if k > k_cap:

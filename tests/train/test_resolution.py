@@ -1,6 +1,7 @@
 """The working-resolution rule: worked examples on the real scene sizes, and the overrides."""
 
 import dataclasses
+from dataclasses import replace
 
 import pytest
 
@@ -32,6 +33,24 @@ def test_epochs_worked_example():
     # a --steps run of a whole-image-per-step method makes steps / views passes at any size
     assert epochs_at(269, 478, 58, SPLATS, 0, 5800) is None
     assert epochs_at(100, 100, 10, RAYS, 0, 1000) == pytest.approx(30.0)  # 3e6 rays / 1e5 px
+
+
+def test_passes_are_counted_over_at_most_epoch_views():
+    """With epoch_views 100, 262 views need the passes of 100: 2.62x the pixels a view, so
+    the chosen side grows ~1.6x; captures of up to 100 views are unchanged."""
+    capped = replace(SPLATS, epoch_views=100)
+    assert epochs_at(114, 85, 262, capped, 600, 0) == pytest.approx(
+        2.62 * epochs_at(114, 85, 262, SPLATS, 600, 0)
+    )
+    assert epochs_at(269, 478, 58, capped, 600, 0) == epochs_at(269, 478, 58, SPLATS, 600, 0)
+    many = (799, 598, 262)
+    coarse = choose_resolution(*many, SPLATS, time_budget_s=600)
+    finer = choose_resolution(*many, capped, time_budget_s=600)
+    assert finer.downscale < coarse.downscale
+    assert "100 (of 262) training views" in finer.reason and "262 training views" in coarse.reason
+    assert choose_resolution(*FOX, capped, time_budget_s=600) == choose_resolution(
+        *FOX, SPLATS, time_budget_s=600
+    )
 
 
 def test_fox_ten_minutes_at_350k_px_per_s_trains_at_one_fifth():
