@@ -70,7 +70,6 @@ from recon.models.schedules import (
 from recon.models.splatting_config import (
     EXTENT_RULES,
     PRESETS,
-    SCHEDULE_FRACTIONS,
     GaussiansConfig,
     schedule_fractions,
 )
@@ -484,7 +483,7 @@ class GaussianModel(Model):
         state = {
             "optimizer": self.optimizer.state_dict(),
             "densify": {k: v.clone() for k, v in self.densify_state.items()},
-            "schedules": schedule_state(self.config, SCHEDULE_FRACTIONS),
+            "schedules": schedule_state(self.config, self._fractions),
         }
         if self.pose_optimizer is not None:
             state["pose_optimizer"] = self.pose_optimizer.state_dict()
