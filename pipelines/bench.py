@@ -211,6 +211,21 @@ def _psnr_at(curve: list, t: float) -> float | None:
     return before[-1] if before else None
 
 
+SPIRAL_CAPTURE = ROOT / "bench" / "work" / "data" / "spiral-300"
+
+
+def ensure_spiral_capture() -> Path:
+    """The spiral-300 capture's folder, rendered by make_capture.py unless complete (its
+    transforms.json is written last; a partial render resumes)."""
+    if not (SPIRAL_CAPTURE / "transforms.json").exists():
+        print("bench: rendering the spiral-300 capture ...", file=sys.stderr, flush=True)
+        script = ROOT / "pipelines" / "make_capture.py"
+        subprocess.run(
+            [sys.executable, str(script), "--out", str(SPIRAL_CAPTURE)], check=True, cwd=ROOT
+        )
+    return SPIRAL_CAPTURE
+
+
 @click.command()
 @click.option("--methods", default="3dgs,ngp,plenoxel,nerf", show_default=True)
 @click.option(
@@ -271,14 +286,7 @@ def main(methods: str, budget_scale: float, skip_sfm: bool, out_dir: str, reuse:
     out_plot.write_bytes((ws / "speed_vs_error.png").read_bytes())
     results["speed_vs_error_png"] = os.path.relpath(out_plot, ROOT)  # --out-dir may lie outside
     if not skip_sfm:
-        spiral = ROOT / "bench" / "work" / "data" / "spiral-300"  # made here: make_capture.py
-        if not (spiral / "transforms.json").exists():
-            print("bench: rendering the spiral-300 capture ...", file=sys.stderr, flush=True)
-            subprocess.run(
-                [sys.executable, str(ROOT / "pipelines" / "make_capture.py"), "--out", str(spiral)],
-                check=True,
-                cwd=ROOT,
-            )
+        spiral = ensure_spiral_capture()
         for scene, images, transforms in (
             ("sample", ROOT / "sample_data" / "images", ROOT / "sample_data" / "transforms.json"),
             ("fox", SHARED / "fox" / "images", SHARED / "fox" / "transforms.json"),

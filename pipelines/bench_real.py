@@ -32,14 +32,14 @@ import json
 import os
 import platform
 import socket
-import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import click
 
-from bench import git_commit, matmul_gflops, recon
+from bench import SPIRAL_CAPTURE, ensure_spiral_capture, git_commit, matmul_gflops, recon
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -59,8 +59,8 @@ SCENES = {
     # 300 ordered photos at 800 x 600 of the sample scene, rendered here with exact poses
     # (pipelines/make_capture.py): the many-photo capture of the suite
     "spiral-300": {
-        "photos": ROOT / "bench" / "work" / "data" / "spiral-300" / "images",
-        "make": ROOT / "pipelines" / "make_capture.py",
+        "photos": SPIRAL_CAPTURE / "images",
+        "make": ensure_spiral_capture,
         "eval_downscale": 0,
         "targets": {},
     },
@@ -69,12 +69,11 @@ SCENES = {
 BUDGETS = {"3dgs": (120, 600, 1800), "ngp": (600,)}
 
 
-def run_sfm(ws: Path, photos: Path, make: Path | None) -> dict:
+def run_sfm(ws: Path, photos: Path, make: Callable[[], Path] | None) -> dict:
     if (ws / "sfm" / "cameras.json").exists():
         return json.loads((ws / "sfm" / "report.json").read_text()) | {"reused": True}
-    if make is not None and not photos.exists():
-        print(f"bench: making {photos.parent.name} ({make.name}) ...", file=sys.stderr, flush=True)
-        subprocess.run([sys.executable, str(make), "--out", str(photos.parent)], check=True)
+    if make is not None:  # a capture the project renders: made (or completed) first
+        make()
     t0 = time.perf_counter()
     out = recon("sfm", str(photos), "-w", str(ws))
     return out | {"wall_s": round(time.perf_counter() - t0, 1)}

@@ -21,12 +21,11 @@ import time
 from pathlib import Path
 
 import click
-import cv2
-import numpy as np
 import torch
 
 from recon.cameras.conventions import opengl_c2w_from_opencv_c2w
-from recon.io.atomic import atomic_path, atomic_write_json
+from recon.io.atomic import atomic_write_json
+from recon.io.images import composite, write_jpeg
 from recon.synthetic.scene import (
     SceneConfig,
     build_scene,
@@ -40,19 +39,6 @@ WIDTH, HEIGHT, FOCAL = 800, 600, 960.0
 TURNS, ELEVATIONS_DEG, RADII = 3.0, (25.0, 60.0), (1.7, 2.1)
 
 
-def write_jpeg(path: Path, rgba: np.ndarray) -> None:
-    """Float straight-alpha RGBA (H, W, 4) in [0, 1] over white -> 8-bit JPEG, atomically."""
-    rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
-    img = (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    ok, buf = cv2.imencode(
-        ".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95]
-    )
-    if not ok:
-        raise OSError(f"JPEG encoding failed for {path}")
-    with atomic_path(path) as tmp:
-        buf.tofile(str(tmp))
-
-
 def generate(out: Path, count: int, log=print) -> dict:
     scene = SceneConfig()
     mesh, texture = build_scene(scene), make_texture(scene.seed)
@@ -63,7 +49,7 @@ def generate(out: Path, count: int, log=print) -> dict:
         name = f"images/p_{i:04d}.jpg"
         if not (out / name).exists():  # resumable: a photo once written is final
             rgba, _ = render_view(mesh, texture, scene, cameras, i, supersample=1)
-            write_jpeg(out / name, rgba.numpy())
+            write_jpeg(out / name, composite(rgba.numpy(), (1.0, 1.0, 1.0)))
         world_from_cam = cameras.world_from_cam[i].numpy()
         frames.append(
             {

@@ -16,7 +16,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import click
-import cv2
 import numpy as np
 import torch
 
@@ -24,6 +23,7 @@ from recon.cameras import Cameras
 from recon.cameras.conventions import opengl_c2w_from_opencv_c2w
 from recon.io.atomic import atomic_path, atomic_write_json
 from recon.io.exr import write_depth_exr
+from recon.io.images import write_png
 from recon.synthetic.scene import (
     SceneConfig,
     build_scene,
@@ -94,18 +94,6 @@ def transforms_json(cameras: Cameras, stems: list[str], scene: SceneConfig, rig:
     }
 
 
-def write_rgba_png(path: Path, rgba: np.ndarray) -> None:
-    """Float RGBA (H, W, 4) in [0, 1] -> 8-bit RGBA PNG, atomically."""
-    img = (np.clip(rgba, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    ok, buf = cv2.imencode(
-        ".png", cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA), [cv2.IMWRITE_PNG_COMPRESSION, 9]
-    )
-    if not ok:
-        raise OSError(f"PNG encoding failed for {path}")
-    with atomic_path(path) as tmp:
-        buf.tofile(str(tmp))
-
-
 def generate(out: Path, scene: SceneConfig, rig: RigConfig, log=print) -> dict:
     """Render every view and write the dataset under `out`; returns summary numbers."""
     started = time.perf_counter()
@@ -115,7 +103,7 @@ def generate(out: Path, scene: SceneConfig, rig: RigConfig, log=print) -> dict:
     coverage = []
     for i, stem in enumerate(stems):
         rgba, depth = render_view(mesh, texture, scene, cameras, i, rig.supersample)
-        write_rgba_png(out / "images" / f"{stem}.png", rgba.numpy())
+        write_png(out / "images" / f"{stem}.png", rgba.numpy(), compression=9)
         write_depth_exr(out / "depth" / f"{stem}.exr", depth.numpy().astype(np.float32))
         coverage.append(float(rgba[..., 3].mean()))
         if (i + 1) % 8 == 0 or i + 1 == len(stems):

@@ -53,13 +53,23 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def write_png(path: Path, rgb: np.ndarray) -> None:
+def write_png(path: Path, rgb: np.ndarray, compression: int | None = None) -> None:
     """Write float RGB (H, W, 3) or RGBA (H, W, 4) in [0, 1] (or uint8) as an 8-bit PNG,
-    atomically."""
+    atomically; `compression` 0-9 (None: OpenCV's default)."""
+    params = [] if compression is None else [cv2.IMWRITE_PNG_COMPRESSION, compression]
+    _write_encoded(Path(path), ".png", rgb, params)
+
+
+def write_jpeg(path: Path, rgb: np.ndarray, quality: int = 95) -> None:
+    """Write float RGB (H, W, 3) in [0, 1] (or uint8) as an 8-bit JPEG, atomically."""
+    _write_encoded(Path(path), ".jpg", rgb, [cv2.IMWRITE_JPEG_QUALITY, quality])
+
+
+def _write_encoded(path: Path, ext: str, rgb: np.ndarray, params: list[int]) -> None:
     img = rgb if rgb.dtype == np.uint8 else to_uint8(rgb)
     bgr = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[-1] == 4 else cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", bgr)
+    ok, buf = cv2.imencode(ext, bgr, params)
     if not ok:
-        raise OSError(f"PNG encoding failed for {path}")
-    with atomic_path(Path(path)) as tmp:
+        raise OSError(f"{ext[1:].upper()} encoding failed for {path}")
+    with atomic_path(path) as tmp:
         buf.tofile(str(tmp))

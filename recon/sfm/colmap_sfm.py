@@ -175,12 +175,14 @@ def prepare_retry(
     return colmap_retry.retry_pairs(photos.names, retry, all_pairs)
 
 
-def first_pairs(database: Path, names: list[str], matcher: str, neighbors: int) -> list:
-    """The image pairs a first attempt matches."""
+def first_pairs(
+    database: Path, names: list[str], matcher: str, neighbors: int, seed: int
+) -> list[tuple[str, str]]:
+    """The image pairs a first attempt matches (`seed`: the retrieval vocabulary's)."""
     if matcher == "exhaustive":
         return steps.exhaustive_pairs(names)
     if matcher == "retrieval":
-        return retrieval_pairs(names, steps.read_descriptors(database, names), neighbors)
+        return retrieval_pairs(names, steps.read_descriptors(database, names), neighbors, seed)
     return steps.sequential_pairs(names)
 
 
@@ -212,7 +214,7 @@ def run_attempt(
             steps.extract_features(
                 db, photos.staging_dir, groups, options, config.camera_model, threads, report
             )
-            pairs = first_pairs(db, names, options.matcher, config.retrieval_neighbors)
+            pairs = first_pairs(db, names, options.matcher, config.retrieval_neighbors, config.seed)
     with attempt.timer("matching"):
         attempt.pairs_matched = len(pairs)
         steps.match_pairs(db, directory, pairs, options, config.seed, threads, report)
