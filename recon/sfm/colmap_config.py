@@ -57,6 +57,12 @@ class SfmConfig:
         "warn and exit with code 3 when fewer than this share of the usable photos register",
     )
     min_image_side: int = opt(64, "photos with a shorter side below this (px) are skipped")
-    seed: int = opt(0, "RANSAC and mapper seed (runs repeat bit for bit only with num_threads=1)")
-    num_threads: int = opt(-1, "COLMAP threads (-1: all cores)")
+    seed: int = opt(
+        0, "RANSAC, retrieval and mapper seed (the same photos and seed give the same model)"
+    )
+    num_threads: int = opt(
+        -1,
+        "COLMAP threads for features, matching and the last adjustment (-1: all cores; the "
+        "incremental mapper uses one)",
+    )
     verbose: bool = opt(False, "show COLMAP's own log lines")

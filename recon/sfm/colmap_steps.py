@@ -40,6 +40,12 @@ GLOBAL_BA_GROWTH = 1.3
 LIGHT_GLOBAL_BA_IMAGES = 150
 LIGHT_GLOBAL_BA_GROWTH = 1.5
 LIGHT_GLOBAL_BA_REFINEMENTS = 1
+# The incremental mapper runs on one thread whatever `num_threads` says: with two, the
+# results of its multi-threaded steps depend on timing in their last bits, and on a hard
+# capture those bits decide whether an initial pair or a next image is accepted (a 12-photo
+# ring registered 8 photos in most runs and 2 in others from one database). Most of its time
+# is single-threaded anyway (fox: 9.5 s on one thread, 10.2 s on two).
+INCREMENTAL_MAPPER_THREADS = 1
 
 
 @dataclass(frozen=True)
@@ -104,6 +110,7 @@ def extract_features(
     """
     total, done = sum(len(names) for names, _ in groups), 0
     progress("features", 0, total)
+    pycolmap.Database.open(database).close()  # import_images needs the file
     for group, longer_side in groups:
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = options.max_image_size
@@ -116,6 +123,17 @@ def extract_features(
             reader = pycolmap.ImageReaderOptions()
             reader.camera_model = camera_model
             reader.existing_camera_id = camera_id
+            # Image ids in name order. COLMAP's extractor writes an image's row when a worker
+            # finishes it, so with several threads the ids (and with them the pair ids, the
+            # orientation of every match and the mapper's tie-breaks) depended on timing;
+            # images imported first keep their ids and the extractor fills in their features.
+            pycolmap.import_images(
+                database,
+                image_dir,
+                camera_mode=pycolmap.CameraMode.SINGLE,
+                image_names=names,
+                options=reader,
+            )
             pycolmap.extract_features(
                 database,
                 image_dir,
@@ -271,7 +289,7 @@ def map_images(
             registered[0] += 1
             progress("mapping", min(registered[0] + 1, total), total)
 
-        pipeline = incremental_options(options, names, seed, num_threads)
+        pipeline = incremental_options(options, names, seed, INCREMENTAL_MAPPER_THREADS)
         models = pycolmap.incremental_mapping(
             database, image_dir, output_dir, pipeline, next_image_callback=next_image
         )
