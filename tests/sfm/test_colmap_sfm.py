@@ -94,6 +94,8 @@ def test_global_adjustments_are_lighter_only_on_many_photos():
     assert many.ba_global_frames_ratio == many.ba_global_points_ratio == 1.5
     assert many.ba_global_max_refinements == 1
     assert many.mapper.ba_global_ignore_redundant_points3D
+    for options in (small, many):  # adjustments stop at Ceres' relative decrease, not COLMAP's 0
+        assert options.ba_global_function_tolerance == options.ba_local_function_tolerance == 1e-6
 
 
 def test_low_parallax_retry_changes_only_the_initial_pair_angle():
