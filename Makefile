@@ -63,12 +63,14 @@ sweep: install
 	$(BIN)/snakemake -s pipelines/Snakefile --configfile pipelines/config.yaml --cores 2
 
 # lego-200 (every method) + sfm on sample/fox, render throughput of those lego-200 runs (200 and
-# 800 px), fox-real (3dgs and ngp on the real capture), then meshes against ground truth
-# (sample_data and the walnut ring) and sample_data's mesh F-score against training time
-bench: install
+# 800 px), the real captures (3dgs and ngp), the fox-real 30-minute model in the report's 3D
+# viewer (headless chromium), then meshes against ground truth (sample_data and the walnut
+# ring) and sample_data's mesh F-score against training time
+bench: install browser
 	$(BIN)/python pipelines/bench.py
 	$(BIN)/python pipelines/bench_render.py
 	$(BIN)/python pipelines/bench_real.py
+	$(BIN)/python pipelines/bench_viewer.py -w bench/work/fox-real --run 3dgs-1800
 	$(BIN)/python pipelines/bench_mesh.py --methods ngp,plenoxel,3dgs,sdf,mvs
 	$(BIN)/python pipelines/bench_mesh.py --scenes sample --methods sdf,3dgs --curve 60,120,300,600
 

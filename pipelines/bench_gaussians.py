@@ -4,7 +4,7 @@
     python pipelines/bench_gaussians.py --workspace WS --warmup 600 --steps 40   # a real scene
 
 For each image size: render forward and forward+backward ms per frame (projection + SH +
-binning + rasterization), training steps/s of `GaussianModel.train_step` (SSIM loss, Adam, no
+binning + rasterization), training steps/s of a 3dgs `Trainer.step` (SSIM loss, Adam, no
 densification so the count stays put), and where one training step's time goes, from the
 `3dgs.*` profiler labels the model and kernels carry. The scene: G Gaussians on a sphere
 shell (radius 0.8, scales from the point spacing) seen from an orbit at distance 3.
@@ -27,6 +27,7 @@ from recon.models.base import SceneInfo, TrainData
 from recon.models.splatting import GaussianModel
 from recon.models.splatting_config import PRESETS, GaussiansConfig
 from recon.synthetic.splats import orbit_cameras, shell_gaussians
+from recon.train.trainer import Trainer
 
 LABELS = (
     "project",
@@ -95,25 +96,29 @@ def training_setup(gaussians: dict, cameras: Cameras) -> tuple[GaussianModel, Tr
 
 
 def bench_training(gaussians: dict, cameras: Cameras, steps: int) -> dict:
-    """Steps/s of train_step at full SH degree, and its time split by `3dgs.*` labels (ms/step,
+    """Steps/s of training at full SH degree, and its time split by `3dgs.*` labels (ms/step,
     measured under the profiler, which adds a little overhead)."""
     model, data = training_setup(gaussians, cameras)
-    return profile_steps(model, data, 3, steps)
+    return profile_steps(Trainer(model), data, 3, steps)
 
 
-def profile_steps(model: GaussianModel, data: TrainData, first: int, steps: int) -> dict:
+def profile_steps(trainer: Trainer, data: TrainData, first: int, steps: int) -> dict:
     """Time `steps` train steps from step `first` (after one warm-up step), then profile as
     many more: steps/s, ms per `3dgs.*` label per step, the Gaussian count at the end."""
-    model.train_step(data, first)
+    trainer.step(data, first)
     t0 = time.perf_counter()
     for step in range(first + 1, first + 1 + steps):
-        model.train_step(data, step)
+        trainer.step(data, step)
     steps_per_s = steps / (time.perf_counter() - t0)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         for step in range(first + 1 + steps, first + 1 + 2 * steps):
-            model.train_step(data, step)
+            trainer.step(data, step)
     totals = {e.key: e.cpu_time_total for e in prof.key_averages()}
-    split = {k: round(totals.get(f"3dgs.{k}", 0.0) / steps / 1000, 2) for k in LABELS}
+    # the model's `3dgs.*` phases and the trainer's (`train.backward`, `train.optimizer`)
+    split = {
+        k: round((totals.get(f"3dgs.{k}", 0.0) + totals.get(f"train.{k}", 0.0)) / steps / 1000, 2)
+        for k in LABELS
+    }
     split["backward_other"] = round(
         split["backward"] - split["raster_backward"] - split["project_backward"], 2
     )
@@ -124,7 +129,7 @@ def profile_steps(model: GaussianModel, data: TrainData, first: int, steps: int)
     return {
         "steps_per_s": round(steps_per_s, 3),
         "ms_per_step_profiled": split,
-        "gaussians": model.num_gaussians,
+        "gaussians": trainer.model.num_gaussians,
     }
 
 
@@ -141,17 +146,17 @@ def bench_workspace(
     scene = load_scene(ws)
     data = load_train_data(ws, scene, "train", downscale=downscale)
     config = build_config(GaussiansConfig, PRESETS, "fast", overrides)
-    model = GaussianModel(config, scene.info)
+    trainer = Trainer(GaussianModel(config, scene.info))
     t0 = time.perf_counter()
     for step in range(warmup):
-        model.train_step(data, step)
+        trainer.step(data, step)
     warm_s = time.perf_counter() - t0
     return {
         "workspace": workspace,
         "warmup_steps": warmup,
         "warmup_s": round(warm_s, 1),
         "size": [int(data.cameras.width[0]), int(data.cameras.height[0])],
-        **profile_steps(model, data, warmup, steps),
+        **profile_steps(trainer, data, warmup, steps),
     }
 
 

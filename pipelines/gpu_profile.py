@@ -24,6 +24,7 @@ from torch.profiler import ProfilerActivity, profile
 
 from recon.models.registry import method_spec
 from recon.train.config import resolve_preset
+from recon.train.trainer import Trainer
 from recon.workspace import Workspace
 from recon.workspace.scene import load_scene, load_train_data
 
@@ -47,7 +48,7 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def profile_steps(model, data, device: torch.device, first: int, steps: int) -> dict:
+def profile_steps(trainer, data, device: torch.device, first: int, steps: int) -> dict:
     """`steps` training steps from step `first` under the profiler -> per-step figures."""
     activities = [ProfilerActivity.CPU]
     if device.type == "cuda":
@@ -56,7 +57,7 @@ def profile_steps(model, data, device: torch.device, first: int, steps: int) -> 
     t0 = time.perf_counter()
     with profile(activities=activities) as prof:
         for step in range(first, first + steps):
-            model.train_step(data, step)
+            trainer.step(data, step)
         sync(device)
     wall = time.perf_counter() - t0
     averages = prof.key_averages()
@@ -114,12 +115,13 @@ def main() -> int:
     model = spec.build(spec.config_cls(**spec.presets.get(preset, {})), scene.info).to(device)
     data = load_train_data(ws, scene, "train", device, args.downscale)
     model.train()
+    trainer = Trainer(model)
     half = args.warmup // 2
     for step in range(args.warmup):
         if step == half:
             sync(device)
             t0 = time.perf_counter()
-        model.train_step(data, step)
+        trainer.step(data, step)
     sync(device)
     warm_ms = 1e3 * (time.perf_counter() - t0) / max(1, args.warmup - half) if args.warmup else None
     result = {
@@ -131,7 +133,7 @@ def main() -> int:
         "warmup_steps": args.warmup,
         "wall_ms_per_step_unprofiled": None if warm_ms is None else round(warm_ms, 3),
         "stats": {k: float(v) for k, v in model.stats().items()},
-        **profile_steps(model, data, device, args.warmup, args.steps),
+        **profile_steps(trainer, data, device, args.warmup, args.steps),
     }
     text = json.dumps(result, indent=1)
     print(text)

@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,29 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 SAMPLE_DATA = REPO / "sample_data"
+
+
+_TRAINERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def train_step(model, data, step: int) -> dict:
+    """One training step of `model` as `recon train` takes it: through its `Trainer`, one per
+    model for the model's life (the optimizers' state carries from step to step)."""
+    from recon.train.trainer import Trainer
+
+    trainer = _TRAINERS.get(model)
+    if trainer is None:
+        trainer = _TRAINERS[model] = Trainer(model)
+    return trainer.step(data, step)
+
+
+def trainer_of(model):
+    """The `Trainer` `train_step` uses for `model` (made on first use)."""
+    from recon.train.trainer import Trainer
+
+    if model not in _TRAINERS:
+        _TRAINERS[model] = Trainer(model)
+    return _TRAINERS[model]
 
 
 def recon_cli(

@@ -30,6 +30,7 @@ from recon.workspace.workspace import MVS_RESULT
 @config_option(EvalConfig, "border", type=click.FloatRange(0.0, 0.5, min_open=True))
 @config_option(EvalConfig, "mvs")
 @config_option(EvalConfig, "pictures")
+@config_option(EvalConfig, "viewer")
 @config_option(EvalConfig, "device")
 @click.option("--force", is_flag=True, help="Evaluate stale runs too.")
 @json_option

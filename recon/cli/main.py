@@ -24,6 +24,7 @@ COMMANDS = {
     "eval": ("eval_cmd", "command"),
     "export": ("export_cmd", "command"),
     "status": ("status_cmd", "status"),
+    "view": ("view_cmd", "command"),
 }
 
 

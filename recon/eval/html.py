@@ -1,9 +1,9 @@
-"""report.html: one self-contained page per workspace (no script, no network; the pictures are
-files beside it, linked by relative paths) that shows what every evaluated run looks like: the
-metrics table, the speed-vs-error plot, the sfm stage (registered and unregistered photos with
+"""report.html: one page per workspace (no network; the pictures and scripts are files beside
+it, linked by relative paths) that shows what every evaluated run looks like: the metrics
+table, the speed-vs-error plot, the sfm stage (registered and unregistered photos with
 reasons, reprojection error, a plot of the camera frusta over the sparse points), and per run
-each held-out view as photo | render | error heat map | depth thumbnails that open full size,
-the mesh previews and the rendered videos."""
+its interactive 3D view (`recon.eval.viewer`), each held-out view as photo | render | error
+heat map | depth thumbnails that open full size, the mesh previews and the rendered videos."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 
 from recon.eval.report import COLUMNS, _fmt, _size, row_cells
+from recon.eval.viewer import viewer_html
 from recon.eval.visuals import ERROR_MAX, KINDS
 from recon.workspace import Workspace, atomic_write_text
 from recon.workspace.workspace import MVS_RESULT
@@ -26,6 +27,10 @@ th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 .views td { text-align: center; } .views img { display: block; width: 180px; }
 .warn { background: #fff3cd; border: 1px solid #e0c36c; padding: 0.5em 0.8em; }
 .gallery img { margin: 0 6px 6px 0; border: 1px solid #ddd; }
+.recon-viewer { margin: 0.5em 0 1.5em; } .recon-viewer canvas { max-width: 100%;
+  border: 1px solid #ccc; cursor: grab; touch-action: none; background: #000; }
+.recon-viewer .bar { margin: 4px 0; font-size: 0.9em; } .recon-viewer .recon-photo { width: 240px;
+  vertical-align: top; margin-left: 8px; border: 1px solid #ddd; }
 .legend { display: inline-block; width: 240px; height: 12px; vertical-align: middle;
   background: linear-gradient(to right, #30123b, #4686fb, #1ae4b6, #a2fc3c, #fabb39, #e4460a, #7a0403); }
 """
@@ -184,6 +189,14 @@ def mvs_section(ws: Workspace, m: dict) -> str:
     )
 
 
+def viewer_block(ws: Workspace, run: str) -> str:
+    """The run's interactive 3D view (`recon.eval.viewer`), when its scene script exists."""
+    script = ws.report_html.parent / "viewer" / f"{run}.js"
+    if not script.exists():
+        return ""
+    return viewer_html(run, rel(script, ws.report_html.parent))
+
+
 def run_section(ws: Workspace, run: str, m: dict) -> str:
     if run == MVS_RESULT:
         return mvs_section(ws, m)
@@ -204,6 +217,7 @@ def run_section(ws: Workspace, run: str, m: dict) -> str:
         f'<h3 id="run-{esc(run)}">{esc(run)} ({esc(m.get("method", ""))})</h3>'
         f"<p>{m.get('views', 0)} held-out views at {_size(m.get('resolution'))}: PSNR "
         f"{_fmt(mean.get('psnr'))} dB, SSIM {_fmt(mean.get('ssim'), 4)}{lp}.{photos}</p>"
+        + viewer_block(ws, run)
         + views_table(ws, run, m)
         + mesh_gallery(ws, run)
         + videos(ws, run)
@@ -229,6 +243,10 @@ def write_html_report(ws: Workspace, metrics: dict[str, dict]) -> Path:
         "<h2>What each run looks like</h2>",
         *(run_section(ws, run, m) for run, m in sorted(metrics.items())),
     ]
+    if (ws.report_html.parent / "viewer" / "viewer.js").exists() and any(
+        'class="recon-viewer"' in part for part in body
+    ):
+        body.append('<script src="viewer/viewer.js"></script>')
     page = (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>recon report: {esc(ws.root.name)}</title><style>{STYLE}</style></head>"

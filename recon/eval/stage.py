@@ -18,6 +18,7 @@ from recon.eval.html import write_html_report
 from recon.eval.report import write_report
 from recon.eval.sfm_plot import plot_sfm
 from recon.eval.speed import read_log, speed_metrics
+from recon.eval.viewer import write_viewer
 from recon.eval.visuals import write_view_pictures
 from recon.io.exr import read_depth_exr
 from recon.metrics.image import border_mask, depth_errors, psnr, psnr_masked, ssim
@@ -68,6 +69,9 @@ class EvalConfig:
     )
     pictures: bool = opt(
         True, "write photo / render / error / depth pictures of each view for report.html"
+    )
+    viewer: bool = opt(
+        True, "write each run's interactive 3D view for report.html (viewer/<run>.js beside it)"
     )
     device: str = opt(
         "auto", "auto (CUDA when available) | cpu | cuda", choices=("auto", "cpu", "cuda")
@@ -343,6 +347,8 @@ def evaluate(
             ended=time.time(),
         )
         results[run] = metrics
+        if cfg.viewer:
+            write_viewer(ws, run)
         if progress:
             progress("eval", k + 1, len(runs), run=run, psnr=round(metrics["mean"]["psnr"], 2))
     if with_mvs:

@@ -172,16 +172,17 @@ def unpack_rotation(bits: np.ndarray) -> np.ndarray:
     return q
 
 
-def write_compressed_ply(
-    path: str | Path,
+def compress_splats(
     means: np.ndarray,
     quats: np.ndarray,
     log_scales: np.ndarray,
     opacity_logits: np.ndarray,
     sh: np.ndarray,
-) -> None:
-    """means (G, 3), quats (G, 4) wxyz, log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)
-    with K in {1, 4, 9, 16} -> `path` as a compressed PLY (SH bands 1..degree kept)."""
+) -> dict[str, np.ndarray]:
+    """The compressed layout's arrays (see the module docstring): "order" (G,) the Morton
+    order the rows follow, "chunks" (C, 18) float32 bounds, "packed" (G, 4) uint32 and
+    "sh_rest" (G, 3 (K - 1)) uint8. means (G, 3), quats (G, 4) wxyz, log_scales (G, 3),
+    opacity_logits (G,), sh (G, K, 3) with K in {1, 4, 9, 16}."""
     G, K = sh.shape[:2]
     if K not in (1, 4, 9, 16):
         raise ValueError(f"SH with {K} coefficients per channel: expected 1, 4, 9 or 16")
@@ -215,11 +216,31 @@ def write_compressed_ply(
     ).reshape(-1, 4)[:G]
     rest = np.transpose(np.asarray(sh, np.float64)[order, 1:], (0, 2, 1)).reshape(G, -1)
     rest_bytes = np.clip(np.trunc((rest / 8 + 0.5) * 256), 0, 255).astype(np.uint8)
+    return {
+        "order": order,
+        "chunks": chunk_data,
+        "packed": packed.astype("<u4"),
+        "sh_rest": rest_bytes,
+    }
+
+
+def write_compressed_ply(
+    path: str | Path,
+    means: np.ndarray,
+    quats: np.ndarray,
+    log_scales: np.ndarray,
+    opacity_logits: np.ndarray,
+    sh: np.ndarray,
+) -> None:
+    """means (G, 3), quats (G, 4) wxyz, log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)
+    with K in {1, 4, 9, 16} -> `path` as a compressed PLY (SH bands 1..degree kept)."""
+    G, K = sh.shape[:2]
+    c = compress_splats(means, quats, log_scales, opacity_logits, sh)
     header = [
         "ply",
         "format binary_little_endian 1.0",
         "comment written by recon (PlayCanvas compressed splat PLY)",
-        f"element chunk {chunks}",
+        f"element chunk {len(c['chunks'])}",
         *(f"property float {p}" for p in CHUNK_PROPS),
         f"element vertex {G}",
         *(f"property uint {p}" for p in VERTEX_PROPS),
@@ -228,9 +249,9 @@ def write_compressed_ply(
         header += [f"element sh {G}", *(f"property uchar f_rest_{i}" for i in range(3 * (K - 1)))]
     with open(path, "wb") as f:
         f.write(("\n".join([*header, "end_header"]) + "\n").encode("ascii"))
-        f.write(chunk_data.tobytes())
-        f.write(packed.astype("<u4").tobytes())
-        f.write(rest_bytes.tobytes())
+        f.write(c["chunks"].tobytes())
+        f.write(c["packed"].tobytes())
+        f.write(c["sh_rest"].tobytes())
 
 
 def _ply_elements(f) -> list[tuple[str, int, list[tuple[str, str]]]]:

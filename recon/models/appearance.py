@@ -68,9 +68,9 @@ def neighbour_correction(
 
 
 class AppearanceCorrection(nn.Module):
-    """The learnt corrections of C training images, with their own Adam (lr `lr`), and where
-    those cameras are (for views that are not training images). A model that meets its training
-    cameras only at the first step starts with C = 0 and calls `reset`."""
+    """The learnt corrections of C training images (the trainer's Adam at lr `lr` fits them),
+    and where those cameras are (for views that are not training images). A model that meets
+    its training cameras only at the first step starts with C = 0 and calls `reset`."""
 
     def __init__(self, num_images: int, lr: float):
         super().__init__()
@@ -78,13 +78,12 @@ class AppearanceCorrection(nn.Module):
         self.resize(num_images)
 
     def resize(self, num_images: int) -> None:
-        """Identity corrections (and blank camera anchors) for `num_images` images, and a fresh
-        optimizer: the shapes a saved state is loaded into."""
+        """Identity corrections (and blank camera anchors) for `num_images` images: the shapes
+        a saved state is loaded into."""
         device = self.deltas.device if hasattr(self, "deltas") else None
         self.deltas = nn.Parameter(torch.zeros(num_images, 3, 4, device=device))
         self.register_buffer("centers", torch.zeros(num_images, 3, device=device))
         self.register_buffer("directions", torch.zeros(num_images, 3, device=device))
-        self.optimizer = torch.optim.Adam([self.deltas], lr=self.lr, eps=1e-15)
 
     def reset(self, cameras: Cameras) -> None:
         """Identity corrections for the training cameras, anchored at their centres and viewing

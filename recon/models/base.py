@@ -144,14 +144,42 @@ def training_targets(
     return recomposite(target, batch["alpha"], old, new), new
 
 
-class Model(nn.Module):
-    """A trainable scene. Subclasses implement the four methods below.
+@dataclass
+class ParamGroup:
+    """Parameters one optimizer updates at one learning rate: `lr` a number, or a schedule
+    (step -> learning rate) the trainer evaluates before every update."""
 
-    `train_step` owns its optimizers, batching and any densification/pruning, so the stage
-    code stays a plain loop; it returns scalars for the log (at least "loss"): Python numbers
-    where the host already knows them (a tensor's shape), else detached 0-d tensors on the
-    model's device, which the loop reads (one host sync) only on the steps it logs. A step on a
-    GPU makes no host round trip of its own (`tests/models/test_device_clean.py`).
+    name: str
+    params: list[Tensor]
+    lr: float | Callable[[int], float]
+    weight_decay: float = 0.0
+
+
+@dataclass
+class OptimizerSpec:
+    """An optimizer over `groups`: Adam (Kingma & Ba 2015; `betas`, `eps`, `fused`: torch's
+    single-kernel update) or, with kind "sgd", plain gradient descent."""
+
+    groups: list[ParamGroup]
+    betas: tuple[float, float] = (0.9, 0.999)
+    eps: float = 1e-8
+    fused: bool | None = None
+    kind: str = "adam"
+
+
+class Model(nn.Module):
+    """A trainable scene. Subclasses implement the methods below.
+
+    Training is split as nerfstudio splits it (Model / Trainer): the trainer
+    (`recon.train.trainer`) owns the optimizers, applies the learning-rate schedules, steps,
+    and saves and restores the optimizer state; a model supplies its parameter groups with
+    their schedules (`optimizers`), its loss (`training_loss`) and the callbacks around the
+    update (`before_step`, `after_backward`, `after_step`: batching, occupancy grids,
+    densification and pruning). `training_loss` returns the loss and scalars for the log (at
+    least "loss"): Python numbers where the host already knows them (a tensor's shape), else
+    detached 0-d tensors on the model's device, which the loop reads (one host sync) only on
+    the steps it logs. A step on a GPU makes no host round trip of its own
+    (`tests/models/test_device_clean.py`).
     `render` returns, for ONE camera, "rgb" (H, W, 3), "depth" (H, W) as z-depth along the
     optical axis in normalized units, and "acc" (H, W) accumulated opacity.
 
@@ -180,13 +208,36 @@ class Model(nn.Module):
         return None
 
     def step_pixels(self, data: TrainData) -> int:
-        """The training pixels (rays) the next `train_step` fits: one whole image by default;
+        """The training pixels (rays) the next step fits: one whole image by default;
         a model that samples ray batches, its batch (the throughput probe counts them,
         `recon.train.throughput`)."""
         return data.images.shape[1] * data.images.shape[2]
 
-    def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
+    def optimizers(self) -> dict[str, OptimizerSpec]:
+        """Its optimizers by name ("main", and any others, e.g. pose corrections), as they stand:
+        the trainer builds a fresh one whenever a spec's parameters are not the tensors it
+        updates (a model that replaces its parameters gets fresh moments; one that resizes
+        them in place keeps its optimizer's state in step itself, in `after_step`)."""
         raise NotImplementedError
+
+    def before_step(self, data: TrainData, step: int) -> None:
+        """Called before the loss of 0-based `step` (occupancy updates, schedules of its own)."""
+
+    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+        """The loss of `step` (a batch or a view of `data`) and the scalars to log."""
+        raise NotImplementedError
+
+    def after_backward(self, data: TrainData, step: int, stats: dict) -> None:
+        """Called after the backward pass, before the optimizers step (gradients of its own)."""
+
+    def optimizers_due(self, step: int) -> set[str] | None:
+        """The optimizers that update at `step` (None: all of them)."""
+        return None
+
+    def after_step(
+        self, data: TrainData, step: int, optimizers: dict[str, torch.optim.Optimizer], stats: dict
+    ) -> None:
+        """Called after the update (densification and pruning edit `optimizers`' state)."""
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -223,6 +274,14 @@ class Model(nn.Module):
         log_scales (G, 3), opacity_logits (G,), sh (G, K, 3)); models with `exports_splats`."""
         raise NotImplementedError
 
+    def splat_rendering(self) -> dict:
+        """How its own `render` draws `splats()` (models with `exports_splats`), for a viewer
+        that projects them itself: "sh_degree", "antialiased" (the per-view opacity
+        compensation), "background" (3,) floats, "near", and "intervals" (G,) numpy, each
+        Gaussian's finest training sampling interval whose footprint finer views keep (or
+        None)."""
+        raise NotImplementedError
+
     def finish(self, data: TrainData) -> dict[str, float]:
         """Called once when training stops, before the model is saved: a last clean-up that
         does not change the renders (e.g. dropping what no training ray sees). Returns stats."""
@@ -234,7 +293,8 @@ class Model(nn.Module):
         return self.state_dict()
 
     def training_state(self) -> dict:
-        """Everything beyond `state_dict()` needed to resume exactly (optimizers, schedules)."""
+        """Everything beyond `state_dict()` and the optimizers (the trainer saves those) needed
+        to resume exactly: random generators, schedules, accumulators."""
         return {}
 
     def load_training_state(self, state: dict) -> None:

@@ -43,6 +43,8 @@ from recon.models.background import (
 from recon.models.base import (
     MethodSpec,
     Model,
+    OptimizerSpec,
+    ParamGroup,
     ResolutionPolicy,
     SceneInfo,
     TrainData,
@@ -57,7 +59,7 @@ from recon.models.raymarch import (
     sample_rays,
     scatter_rays,
 )
-from recon.models.schedules import exp_decay_lr, set_lr
+from recon.models.schedules import exp_decay_lr
 from recon.options import opt
 from recon.volrend import (
     OccupancyGrid,
@@ -242,9 +244,6 @@ class NeRFModel(Model):
         self.dtype = mlp_dtype(self.aabb.device, cfg.precision)
         self.step_size = (self.aabb[1] - self.aabb[0]).norm().item() / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.optimizer = torch.optim.Adam(
-            self.parameters(), lr=cfg.lr, fused=self.aabb.device.type == "cpu" or None
-        )
 
     def encode_points(self, points: Tensor) -> Tensor:
         """gamma of world points (N, 3): the box maps to [-1, 1]^3; unbounded scenes contract
@@ -458,10 +457,18 @@ class NeRFModel(Model):
     def step_pixels(self, data: TrainData) -> int:
         return self.cfg.rays_per_batch
 
-    def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
+    def optimizers(self) -> dict[str, OptimizerSpec]:
         cfg = self.cfg
+        schedule = lambda step: exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps)
+        fused = self.aabb.device.type == "cpu" or None
+        group = ParamGroup("all", list(self.parameters()), schedule)
+        return {"main": OptimizerSpec([group], fused=fused)}
+
+    def before_step(self, data: TrainData, step: int) -> None:
         self._update_occupancy(step)
-        set_lr(self.optimizer, exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps))
+
+    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+        cfg = self.cfg
         batch = sample_rays(data, cfg.rays_per_batch, self.generator)
         target, background = training_targets(
             batch, self._random_background(data), self.background, self.generator
@@ -471,11 +478,7 @@ class NeRFModel(Model):
         )
         mse_c = torch.mean((coarse["rgb"] - target) ** 2)
         mse_f = torch.mean((fine["rgb"] - target) ** 2)
-        loss = mse_c + mse_f
-        self.optimizer.zero_grad(set_to_none=True)
-        if loss.requires_grad:  # no ray crossed an occupied cell: nothing to learn
-            loss.backward()
-            self.optimizer.step()
+        loss = mse_c + mse_f  # without gradient when no ray crossed an occupied cell
         hit_fraction = fine["hit"].float().mean()
         out = {  # 0-d tensors: read by the loop when it logs (no host sync a step)
             "loss": loss.detach(),
@@ -485,7 +488,7 @@ class NeRFModel(Model):
         }
         if self.occupancy is not None:
             out["occupied"] = self.occupancy.occupancy_fraction()
-        return out
+        return loss, out
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -507,10 +510,9 @@ class NeRFModel(Model):
         return super().load_state_dict(state, strict)
 
     def training_state(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state()}
+        return {"generator": self.generator.get_state()}
 
     def load_training_state(self, state: dict) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
 
 

@@ -30,7 +30,16 @@ from recon.io.packed import (
     quantize_int8,
 )
 from recon.metrics.image import training_psnr
-from recon.models.base import MethodSpec, Model, ResolutionPolicy, SceneInfo, TrainData, register
+from recon.models.base import (
+    MethodSpec,
+    Model,
+    OptimizerSpec,
+    ParamGroup,
+    ResolutionPolicy,
+    SceneInfo,
+    TrainData,
+    register,
+)
 from recon.models.plenoxel_bake import bake_lattice, lattice_points, vertices_in_cells
 from recon.models.plenoxel_march import (
     Lattice,
@@ -175,7 +184,7 @@ class PlenoxelModel(Model):
         self.n_rays = cfg.rays_per_batch  # adapted after every step to hit samples_per_batch
         self._live: Tensor | None = None  # `live_cells`, computed on demand
         self._points: Tensor | None = None  # `_vertex_points`, likewise
-        self._make_optimizer()
+        self._samples = 0  # the last step's samples (the next batch's size follows them)
 
     # ---- field ---------------------------------------------------------------------------
     @property
@@ -377,18 +386,21 @@ class PlenoxelModel(Model):
         self._prune_neighbourhood((best >= self.cfg.finish_weight).float(), 0.0)
 
     # ---- training ------------------------------------------------------------------------
-    def _make_optimizer(self) -> None:
+    def optimizers(self) -> dict[str, OptimizerSpec]:
         # dense fused Adam: pruning keeps the grid small, and one fused pass beats coalescing
-        # sparse gradients with many repeated rows (measured: SparseAdam spent 70 % of a step there)
-        self.optimizer = torch.optim.Adam(
-            [
-                {"params": [self.grid.data["density"]], "lr": self.cfg.lr_density},
-                {"params": [self.grid.data["sh"]], "lr": self.cfg.lr_sh},
-            ],
-            eps=1e-15,
-            fused=self.aabb.device.type == "cpu" or None,
-        )
-        self._base_lrs = [self.cfg.lr_density, self.cfg.lr_sh]
+        # sparse gradients with many repeated rows (measured: SparseAdam spent 70 % of a step
+        # there). The grid's rows change as it is pruned and upsampled: a fresh Adam each time.
+        cfg = self.cfg
+        groups = [
+            ParamGroup(
+                name,
+                [self.grid.data[name]],
+                lambda step, base=base: exp_decay_lr(step, base, 0.1 * base, cfg.lr_decay_steps),
+            )
+            for name, base in (("density", cfg.lr_density), ("sh", cfg.lr_sh))
+        ]
+        fused = self.aabb.device.type == "cpu" or None
+        return {"main": OptimizerSpec(groups, eps=1e-15, fused=fused)}
 
     @torch.no_grad()
     def _tv_step(self) -> Tensor:
@@ -470,7 +482,6 @@ class PlenoxelModel(Model):
             self._density_changed()
             if self.cfg.upsample_prune_unseen and self.cfg.finish_weight > 0:
                 self.prune_unseen(data)  # before the finer lattice's optimizer state exists
-            self._make_optimizer()
 
     @torch.no_grad()
     def prune(self) -> None:
@@ -487,9 +498,8 @@ class PlenoxelModel(Model):
         near = F.max_pool3d(dense.view(1, 1, *(self.res,) * 3), 3, stride=1, padding=1)
         keep = near.reshape(-1)[self.grid.coords] > threshold
         if int(keep.sum()) >= 8:
-            self.grid.prune(keep)
+            self.grid.prune(keep)  # new rows: the trainer's optimizer starts afresh
             self._density_changed()
-            self._make_optimizer()
 
     @torch.no_grad()
     def bake(self, data: TrainData) -> None:
@@ -517,7 +527,6 @@ class PlenoxelModel(Model):
         self._update_occupancy(warmup=False)
         if self.cfg.finish_weight > 0:
             self.prune_unseen(data)
-        self._make_optimizer()
 
     def _update_occupancy(self, warmup: bool) -> None:
         cell = self._box_side() / self.cfg.occupancy_res
@@ -529,37 +538,38 @@ class PlenoxelModel(Model):
             c.samples_per_batch, PlenoxelConfig.samples_per_batch, RAYS_PER_STEP, self.n_rays
         )
 
-    def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
+    def before_step(self, data: TrainData, step: int) -> None:
         if step == 0 and self.cfg.bake_from:
             self.bake(data)
         self._maybe_upsample(step, data)
         if step % self.cfg.occupancy_every == 0:
             self._update_occupancy(warmup=step < 32 and not self.cfg.bake_from)
+
+    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
         out = self.render_rays(batch["origins"], batch["directions"], jitter=True)
         mse = F.mse_loss(out["rgb"], batch["rgb"])
-        self.optimizer.zero_grad(set_to_none=True)
-        mse.backward()
-        loss = mse.detach() + self._tv_step().float()
-        for g, base in zip(self.optimizer.param_groups, self._base_lrs):
-            g["lr"] = exp_decay_lr(step, base, 0.1 * base, self.cfg.lr_decay_steps)
-        self.optimizer.step()
-        self._density_changed()
-        if (
-            self.cfg.samples_per_batch > 0
-        ):  # Instant-NGP: a fixed sample budget per step, not fixed rays
-            wanted = self.cfg.samples_per_batch * n_rays / max(out["samples"], 1)
-            self.n_rays = int(
-                min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch)
-            )
-        return {  # tensors where a float would sync: the loop reads them when it logs
-            "loss": loss,
+        self._samples = out["samples"]
+        return mse, {  # tensors where a float would sync: the loop reads them when it logs
+            "loss": mse.detach(),  # + the total variation, after the backward pass
             "psnr": training_psnr(mse),
             "samples_per_ray": out["samples"] / n_rays,
             "rays": n_rays,
             "voxels": self.grid.num_rows,
         }
+
+    def after_backward(self, data: TrainData, step: int, stats: dict) -> None:
+        stats["loss"] = stats["loss"] + self._tv_step().float()
+
+    def after_step(self, data, step, optimizers, stats) -> None:
+        self._density_changed()
+        n_rays = self.n_rays
+        if self.cfg.samples_per_batch > 0:  # Instant-NGP: a fixed sample budget, not fixed rays
+            wanted = self.cfg.samples_per_batch * n_rays / max(self._samples, 1)
+            self.n_rays = int(
+                min(max(wanted, n_rays / 2, 256), 2 * n_rays, self.cfg.max_rays_per_batch)
+            )
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -663,18 +673,12 @@ class PlenoxelModel(Model):
         self._density_changed()
         state.update({"grid.coords": self.grid.coords, "grid.links": self.grid.links})
         state.update({f"grid.data.{n}": v for n, v in values.items()})
-        self._make_optimizer()
         return super().load_state_dict(state, strict)
 
     def training_state(self) -> dict:
-        return {
-            "optimizer": self.optimizer.state_dict(),
-            "generator": self.generator.get_state(),
-            "n_rays": self.n_rays,
-        }
+        return {"generator": self.generator.get_state(), "n_rays": self.n_rays}
 
     def load_training_state(self, state: dict) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         self.n_rays = int(state["n_rays"])
 

@@ -61,6 +61,8 @@ from recon.models.background import (
 from recon.models.base import (
     MethodSpec,
     Model,
+    OptimizerSpec,
+    ParamGroup,
     ResolutionPolicy,
     SceneInfo,
     TrainData,
@@ -80,7 +82,6 @@ from recon.models.schedules import (
     fit_schedules,
     refit_schedules,
     schedule_state,
-    set_lr,
 )
 from recon.options import opt
 from recon.volrend import OccupancyGrid, scene_to_unit_cube, volume_render
@@ -254,21 +255,7 @@ class SDFModel(Model):
         self.beta_min = cfg.beta_min_steps * self.step_size / self.half_size
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.n_rays = cfg.rays_per_batch
-        nets = [*self.field.parameters(), *self.color_mlp.parameters()]
-        for extra in (self.environment, self.outer):
-            if extra is not None:
-                nets += list(extra.parameters())
-        grid = [self.field.grid.table]
-        self.optimizer = torch.optim.Adam(
-            [
-                {"params": grid, "name": "grid"},
-                {"params": [p for p in nets if p is not grid[0]], "name": "mlp"},
-                {"params": [self.log_beta], "name": "beta", "lr": cfg.lr_beta},
-            ],
-            lr=cfg.lr,
-            betas=(0.9, 0.99),
-            eps=1e-15,
-        )
+        self._samples = 0  # the last step's samples (the next batch's size follows them)
 
     # ---- the field in the scene's units ------------------------------------------------------
     def to_field(self, points: Tensor) -> Tensor:
@@ -406,7 +393,22 @@ class SDFModel(Model):
             c.samples_per_batch, SDFConfig.samples_per_batch, RAYS_PER_STEP, self.n_rays
         )
 
-    def train_step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
+    def optimizers(self) -> dict[str, OptimizerSpec]:
+        cfg = self.cfg
+        schedule = lambda step: exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps)
+        nets = [*self.field.parameters(), *self.color_mlp.parameters()]
+        for extra in (self.environment, self.outer):
+            if extra is not None:
+                nets += list(extra.parameters())
+        grid = self.field.grid.table
+        groups = [
+            ParamGroup("grid", [grid], schedule),
+            ParamGroup("mlp", [p for p in nets if p is not grid], schedule),
+            ParamGroup("beta", [self.log_beta], cfg.lr_beta),
+        ]
+        return {"main": OptimizerSpec(groups, betas=(0.9, 0.99), eps=1e-15)}
+
+    def before_step(self, data: TrainData, step: int) -> None:
         cfg = self.cfg
         if step % cfg.occupancy_every == 0:
             self.occupancy.update(
@@ -420,9 +422,9 @@ class SDFModel(Model):
         self.field.active_levels = active_levels(
             step, cfg.levels_start, cfg.n_levels, cfg.levels_steps
         )
-        lr = exp_decay_lr(step, cfg.lr, cfg.lr_final, cfg.lr_decay_steps)
-        set_lr(self.optimizer, lr, "grid")
-        set_lr(self.optimizer, lr, "mlp")
+
+    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+        cfg = self.cfg
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
         target, background = training_targets(
@@ -440,14 +442,8 @@ class SDFModel(Model):
         on_points = self._surface_points_loss(data)
         loss = mse + cfg.eikonal_weight * eikonal + cfg.mask_weight * mask
         loss = loss + cfg.points_weight * on_points
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
-        n_samples = grad.shape[0]
-        if cfg.samples_per_batch > 0:  # keep the rendered samples per step, not the rays, fixed
-            wanted = cfg.samples_per_batch * n_rays / max(n_samples, 1)
-            self.n_rays = int(min(max(wanted, n_rays / 2, 64), 2 * n_rays, 1 << 16))
-        return {  # tensors where a float would sync: the loop reads them when it logs
+        n_samples = self._samples = grad.shape[0]
+        return loss, {  # tensors where a float would sync: the loop reads them when it logs
             "loss": loss.detach(),
             "psnr": training_psnr(mse),
             "eikonal": eikonal.detach(),
@@ -457,6 +453,12 @@ class SDFModel(Model):
             "rays": n_rays,
             "occupied": self.occupancy.occupancy_fraction(),
         }
+
+    def after_step(self, data, step, optimizers, stats) -> None:
+        samples_per_batch, n_rays = self.cfg.samples_per_batch, self.n_rays
+        if samples_per_batch > 0:  # keep the rendered samples per step, not the rays, fixed
+            wanted = samples_per_batch * n_rays / max(self._samples, 1)
+            self.n_rays = int(min(max(wanted, n_rays / 2, 64), 2 * n_rays, 1 << 16))
 
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
@@ -468,14 +470,12 @@ class SDFModel(Model):
 
     def training_state(self) -> dict:
         return {
-            "optimizer": self.optimizer.state_dict(),
             "generator": self.generator.get_state(),
             "n_rays": self.n_rays,
             "schedules": schedule_state(self.cfg, SCHEDULE_FRACTIONS),
         }
 
     def load_training_state(self, state: dict) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])
         self.n_rays = int(state["n_rays"])
         if "schedules" in state:  # as re-planned (`replan`) by the step it was saved at

@@ -28,6 +28,7 @@ from recon.metrics.image import training_psnr
 from recon.models.base import Model, TrainData
 from recon.train.config import TrainConfig
 from recon.train.replan import Replanner
+from recon.train.trainer import Trainer
 
 
 @dataclass
@@ -116,7 +117,7 @@ def report_progress(progress, cfg: TrainConfig, st: LoopState, stats: dict) -> N
 
 
 def run_loop(
-    model: Model,
+    trainer: Trainer,
     data: TrainData,
     held_cams: Cameras | None,
     held_imgs: torch.Tensor | None,
@@ -129,13 +130,14 @@ def run_loop(
 ) -> str:
     """Train until a stopping rule fires; returns the reason (steps | time_budget | converged).
 
-    A step's stats may be 0-d tensors on the model's device (`Model.train_step`): they are read
+    A step's stats may be 0-d tensors on the model's device (`Model.training_loss`): they are read
     (a host sync) only on the steps that are logged, every 10th and the first, and progress
     shows the last logged values. A non-finite loss is never trained on silently: read there,
     before a checkpoint and at the end, it raises FloatingPointError (the optimizer may already
     have written NaNs into the parameters) and the caller rolls back; so do non-finite
     parameters found before a checkpoint or at the end.
     """
+    model = trainer.model
     model.train()
     clock = time.perf_counter()
 
@@ -153,7 +155,7 @@ def run_loop(
             reason = should_stop(cfg, st)
         return reason
 
-    stats: dict = {}  # the last step's, as train_step returned them
+    stats: dict = {}  # the last step's, as the trainer returned them
     logged: dict = {}  # the last logged step's, as Python numbers
     replanner = None
     if cfg.time_budget_s > 0:
@@ -167,7 +169,7 @@ def run_loop(
             if (reason := stop_reason()) is not None:
                 break
         t0 = time.perf_counter()
-        stats = model.train_step(data, st.step)
+        stats = trainer.step(data, st.step)
         st.wall_s += time.perf_counter() - t0
         st.step += 1
         tick()

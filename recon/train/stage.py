@@ -33,6 +33,7 @@ from recon.train.resolution import (
     trained_resolution,
     working_resolution,
 )
+from recon.train.trainer import Trainer
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.registration import partial_warning
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
@@ -40,39 +41,7 @@ from recon.workspace.workspace import MVS_RESULT, RUN_SCHEMA_VERSION, software_v
 
 MAX_ROLLBACKS = 3  # non-finite losses survived by reloading the last checkpoint
 ROLLBACK_LR_FACTOR = 0.5  # every rollback halves all learning rates for the rest of the process
-
-
-class LearningRateScale:
-    """Scale every optimizer's learning rates by `scale` for the duration of each `step()`, on
-    top of whatever schedule the model set (global torch optimizer step hooks, so optimizers a
-    model rebuilds later, e.g. after upsampling or densification, are covered too). Powers of two
-    keep lr * s / s exact, so the model's own schedule is restored bit for bit after the step."""
-
-    def __init__(self):
-        self.scale = 1.0
-        self._handles = []
-
-    def __enter__(self) -> LearningRateScale:  # noqa: PYI034
-        from torch.optim.optimizer import (
-            register_optimizer_step_post_hook,
-            register_optimizer_step_pre_hook,
-        )
-
-        self._handles = [
-            register_optimizer_step_pre_hook(lambda opt, *_: self._apply(opt, self.scale)),
-            register_optimizer_step_post_hook(lambda opt, *_: self._apply(opt, 1 / self.scale)),
-        ]
-        return self
-
-    @staticmethod
-    def _apply(optimizer: torch.optim.Optimizer, factor: float) -> None:
-        if factor != 1.0:
-            for group in optimizer.param_groups:
-                group["lr"] = group["lr"] * factor
-
-    def __exit__(self, *exc) -> None:
-        for h in self._handles:
-            h.remove()
+# (`Trainer.lr_scale`: a power of two, so the schedules' rates are scaled exactly)
 
 
 def seed_everything(seed: int) -> None:
@@ -243,6 +212,7 @@ class _Run:
     method_cfg: Any  # the method's config dataclass
     device: torch.device
     model: Model
+    trainer: Trainer
     data: TrainData
     held_cams: Cameras | None
     held_imgs: torch.Tensor | None
@@ -263,14 +233,14 @@ class _Run:
             state.step,
             {
                 "model": self.model.state_dict(),
-                "training": self.model.training_state(),
+                "training": self.trainer.state_dict(),
                 "loop": {k: v for k, v in state.__dict__.items()},
                 "rng": torch.get_rng_state(),
             },
             self.cfg.keep_checkpoints,
         )
 
-    def rollback(self, cause: str, rollbacks: int, lr_scale: LearningRateScale) -> LoopState:
+    def rollback(self, cause: str, rollbacks: int) -> LoopState:
         """Reload the last good checkpoint after a non-finite loss (the `rollbacks`-th before
         this one); the RNG moves on, so the retried steps see other rays / views."""
         ck = load_latest_checkpoint(self.ws.checkpoints_dir(self.run), self.log_fn)
@@ -280,12 +250,12 @@ class _Run:
                 "lower the learning rates (see --list-options)"
             )
         self.model.load_state_dict(ck["model"])
-        self.model.load_training_state(ck["training"])
+        self.trainer.load_state_dict(ck["training"])
         # time spent stays spent
         state = LoopState(**{**ck["loop"], "elapsed_s": self.st.elapsed_s})
         torch.manual_seed(self.cfg.seed + 7919 * (rollbacks + 1))
         self.model.reseed(self.cfg.seed + 7919 * (rollbacks + 1))
-        lr_scale.scale *= ROLLBACK_LR_FACTOR
+        self.trainer.lr_scale *= ROLLBACK_LR_FACTOR
         self.log(
             {
                 "step": state.step,
@@ -293,11 +263,11 @@ class _Run:
                 "event": "rollback",
                 "count": rollbacks + 1,
                 "cause": cause,
-                "lr_scale": lr_scale.scale,
+                "lr_scale": self.trainer.lr_scale,
             }
         )
         self.log_fn(
-            f"{cause}: rolled back to step {state.step}, learning rates x{lr_scale.scale:g} "
+            f"{cause}: rolled back to step {state.step}, learning rates x{self.trainer.lr_scale:g} "
             f"(rollback {rollbacks + 1} of {MAX_ROLLBACKS})"
         )
         return state
@@ -353,6 +323,7 @@ def _setup_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn) -> _R
         log_fn(f"fitting {len(data.surface_points)} surface points of recon mvs ({points_from})")
     held = heldout_views(scene, cfg.eval_views)
     model = spec.build(method_cfg, scene.info).to(device)
+    trainer = Trainer(model)
     if note := model.plan_note(data):
         log_fn(note)
     k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)
@@ -391,7 +362,7 @@ def _setup_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn) -> _R
         if ck is None:
             raise WorkspaceError(f"run '{run}' has no readable checkpoint to resume from")
         model.load_state_dict(ck["model"])
-        model.load_training_state(ck["training"])
+        trainer.load_state_dict(ck["training"])
         st = LoopState(**ck["loop"])
         torch.set_rng_state(ck["rng"])
         _truncate_log(log_path, st.step)
@@ -399,7 +370,7 @@ def _setup_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn) -> _R
         log_fn(f"resumed run '{run}' from step {st.step} ({st.wall_s:.0f} s of training)")
     atomic_write_json(ws.run_json(run), run_doc)
     r = _Run(
-        ws, run, cfg, spec, method_cfg, device, model, data, held_cams, held_imgs, run_doc, st,
+        ws, run, cfg, spec, method_cfg, device, model, trainer, data, held_cams, held_imgs, run_doc, st,
         points_from, started, log_fn, open(log_path, "a"),  # noqa: SIM115 (closed by the run's end)
     )  # fmt: skip
     r.checkpoint(st)  # a known-good state to roll back to
@@ -419,26 +390,25 @@ def _run_loop_with_rollbacks(r: _Run, progress) -> str:
     previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     rollbacks = 0
     try:
-        with LearningRateScale() as lr_scale:
-            while True:
-                try:
-                    return run_loop(
-                        r.model,
-                        r.data,
-                        r.held_cams,
-                        r.held_imgs,
-                        r.cfg,
-                        r.st,
-                        r.log,
-                        r.checkpoint,
-                        progress,
-                        interrupted=lambda: stop["requested"],
-                    )
-                except FloatingPointError as e:
-                    if rollbacks >= MAX_ROLLBACKS:
-                        raise
-                    r.st = r.rollback(str(e), rollbacks, lr_scale)
-                    rollbacks += 1
+        while True:
+            try:
+                return run_loop(
+                    r.trainer,
+                    r.data,
+                    r.held_cams,
+                    r.held_imgs,
+                    r.cfg,
+                    r.st,
+                    r.log,
+                    r.checkpoint,
+                    progress,
+                    interrupted=lambda: stop["requested"],
+                )
+            except FloatingPointError as e:
+                if rollbacks >= MAX_ROLLBACKS:
+                    raise
+                r.st = r.rollback(str(e), rollbacks)
+                rollbacks += 1
     except KeyboardInterrupt:
         r.checkpoint(r.st)
         r.log({"step": r.st.step, "wall_s": r.st.wall_s, "event": "interrupted"})

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 import torch
 
 from recon.models.base import Model, ResolutionPolicy, TrainData
+from recon.train.trainer import Trainer
 
 MEASURED_THREADS = 2  # the policies' figures were measured at 2 threads
 MAX_SPEEDUP = 1e4  # a speed is clamped to [1 / this, this] (a degenerate fit: no cost at all)
@@ -249,10 +250,11 @@ def run_probe(
     device = views.images.device
     samples, step = [], 0
     model.train()
+    trainer = Trainer(model)
     for k in levels:
         data = views.downsampled(k)
         for _ in range(PROBE_WARMUP):
-            model.train_step(data, step)
+            trainer.step(data, step)
             step += 1
         timed: list[tuple[int, float]] = []
         spent = 0.0
@@ -260,7 +262,7 @@ def run_probe(
             pixels = model.step_pixels(data)
             _sync(device)
             t0 = time.perf_counter()
-            model.train_step(data, step)
+            trainer.step(data, step)
             _sync(device)
             timed.append((pixels, time.perf_counter() - t0))
             spent += timed[-1][1]

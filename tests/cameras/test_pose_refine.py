@@ -26,7 +26,7 @@ from recon.models.splatting_config import PRESETS, GaussiansConfig
 from recon.models.splatting_rules import pose_probation_end
 from recon.workspace import Workspace
 from recon.workspace.scene import load_scene, load_train_data
-from tests.conftest import SAMPLE_DATA, recon_cli
+from tests.conftest import SAMPLE_DATA, recon_cli, train_step, trainer_of
 from tests.models.test_splatting import config, ring, straight_and_resumed, synthetic_scene
 
 F64 = torch.float64
@@ -182,12 +182,12 @@ def test_off_or_not_yet_started_changes_nothing():
     off = GaussianModel(config(), scene)
     idle = GaussianModel(config(pose_refine=True, pose_refine_start=10_000), scene)
     for step in range(30):
-        off.train_step(data, step)
-        idle.train_step(data, step)
+        train_step(off, data, step)
+        train_step(idle, data, step)
     for name in off.params:
         assert torch.equal(off.params[name], idle.params[name]), name
     assert not any(k.startswith("pose_correction") for k in off.state_dict())
-    assert "pose_optimizer" not in off.training_state()
+    assert "pose" not in trainer_of(off).optimizers
     assert not {"pose_rot_deg_max", "pose_shift_max"} & set(off.stats())
     assert (
         idle.pose_correction.twists.shape == (len(data), 6)
@@ -214,7 +214,7 @@ def test_training_moves_the_poses_but_never_the_held_out_cameras():
         config(pose_refine=True, pose_refine_start=4, lr_pose=1e-3, pose_release_ratio=0.0), scene
     )
     for step in range(20):
-        model.train_step(data, step)
+        train_step(model, data, step)
     twists = model.pose_correction.twists.detach()
     assert twists.abs().max() > 1e-4 and torch.allclose(twists.mean(0), torch.zeros(6), atol=1e-6)
     stats = model.stats()
@@ -274,7 +274,7 @@ def test_probation_moves_nothing_and_resume_keeps_its_sums_and_release():
     )
     model = GaussianModel(cfg, scene)
     for step in range(12):
-        model.train_step(data, step)
+        train_step(model, data, step)
         pc = model.pose_correction
         assert not pc.twists.any() and int(pc.visits.sum()) == max(step - 1, 0), step
     assert pc.frozen.any() and not pc.frozen.all()  # released at the end of step 11
@@ -319,7 +319,7 @@ def test_a_perturbed_training_camera_is_pulled_back(tmp_path, one_thread):
     config = GaussiansConfig(**{**PRESETS["fast"], "pose_refine": True, "max_gaussians": 12_000})
     model = GaussianModel(config, scene.info)
     for step in range(800):
-        model.train_step(data, step)
+        train_step(model, data, step)
 
     def errors(cam_from_world):
         rot = rotation_angle_deg(

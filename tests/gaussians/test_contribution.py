@@ -12,6 +12,7 @@ from recon.gaussians.rasterize_reference import rasterize_features_reference
 from recon.gaussians.render import project_splats
 from recon.models.splatting import GaussianModel
 from recon.models.splatting_rules import prune_fraction
+from tests.conftest import train_step, trainer_of
 from tests.gaussians.test_rasterize import random_splats
 from tests.models.test_splatting import config, synthetic_scene
 
@@ -63,14 +64,16 @@ def test_least_contributing_worked_example():
 def test_pruning_when_densification_ends_halves_the_count_and_keeps_training():
     scene, data = synthetic_scene()
     model = GaussianModel(config(densify_stop=60, prune_contribution=0.5), scene)
-    counts = [model.train_step(data, step)["num_gaussians"] for step in range(80)]
+    counts = [train_step(model, data, step)["num_gaussians"] for step in range(80)]
     before, after = counts[58], counts[59]
     assert after == before - int(0.5 * before)
     assert all(c == after for c in counts[59:])
-    for group in model.optimizer.param_groups:  # moments follow the pruned rows
+    for group in (
+        trainer_of(model).optimizers["main"].param_groups
+    ):  # moments follow the pruned rows
         p = group["params"][0]
-        if p in model.optimizer.state:
-            assert model.optimizer.state[p]["exp_avg"].shape == p.shape
+        if p in trainer_of(model).optimizers["main"].state:
+            assert trainer_of(model).optimizers["main"].state[p]["exp_avg"].shape == p.shape
 
 
 def test_auto_prunes_bounded_scenes_only_and_bad_fractions_are_refused():
@@ -87,5 +90,5 @@ def test_auto_prunes_bounded_scenes_only_and_bad_fractions_are_refused():
 def test_no_pruning_in_a_run_too_short_to_densify():
     scene, data = synthetic_scene()
     model = GaussianModel(config(densify_start=20, densify_stop=10), scene)
-    counts = [model.train_step(data, step)["num_gaussians"] for step in range(12)]
+    counts = [train_step(model, data, step)["num_gaussians"] for step in range(12)]
     assert counts[-1] == counts[0]

@@ -14,6 +14,7 @@ from recon.gaussians.footprint import footprint_dilation, with_training_footprin
 from recon.gaussians.mip_filter import sampling_intervals
 from recon.gaussians.projection import DILATION
 from recon.gaussians.render import ProjectedSplats, composite_rgbd, project_splats
+from tests.conftest import train_step
 
 
 def test_footprint_dilation_worked_example():
@@ -103,7 +104,7 @@ def test_a_finished_model_renders_its_training_views_as_before_and_finer_views_w
     scene, data = synthetic_scene(size=24)
     model = GaussianModel(config(), scene)
     for step in range(30):
-        model.train_step(data, step)
+        train_step(model, data, step)
     cam = data.cameras[0]
     before = model.render(cam)["rgb"]
     model.finish(data)

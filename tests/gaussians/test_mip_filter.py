@@ -9,6 +9,7 @@ import torch
 from recon.cameras import Cameras
 from recon.gaussians.mip_filter import sampling_intervals, smoothed
 from recon.models.splatting import GaussianModel
+from tests.conftest import train_step
 from tests.models.test_splatting import config, straight_and_resumed, synthetic_scene
 
 
@@ -101,6 +102,6 @@ def test_model_with_filter_trains_renders_and_resumes_exactly():
     out = model.render(data.cameras[0])
     assert torch.isfinite(out["rgb"]).all()
     off = GaussianModel(config(densify_start=5, densify_interval=10), scene)
-    off.train_step(data, 0)
+    train_step(off, data, 0)
     assert len(off.filter_intervals) == 0
     assert torch.equal(off.gaussians()["log_scales"], off.params["log_scales"])

@@ -12,6 +12,7 @@ from recon.cameras import Cameras
 from recon.models.base import Model, TrainData
 from recon.train.config import TrainConfig
 from recon.train.loop import LoopState, run_loop
+from recon.train.trainer import Trainer
 
 
 class Blowup(Model):
@@ -22,13 +23,18 @@ class Blowup(Model):
         self.color = torch.nn.Parameter(torch.zeros(3))
         self.bad_step, self.value = bad_step, value
 
-    def train_step(self, data, step):
+    def optimizers(self):
+        return {}  # its own update, after the backward pass
+
+    def training_loss(self, data, step):
         loss = ((self.color - 0.25) ** 2).mean()
+        return loss, {"loss": float(loss.detach())}
+
+    def after_backward(self, data, step, stats):
         with torch.no_grad():
-            self.color -= 0.5 * torch.autograd.grad(loss, self.color)[0]
+            self.color -= 0.5 * self.color.grad
             if step == self.bad_step:
                 self.color[1] = self.value
-        return {"loss": float(loss.detach())}
 
     def render(self, camera):
         h, w = int(camera.height[0]), int(camera.width[0])
@@ -51,7 +57,7 @@ def test_non_finite_parameters_are_never_kept(value, checkpoint_every_s):
     cfg = TrainConfig(method="blowup", steps=5, checkpoint_every_s=checkpoint_every_s)
     with pytest.raises(FloatingPointError, match="non-finite"):
         run_loop(
-            model,
+            Trainer(model),
             data(),
             None,
             None,
@@ -67,7 +73,7 @@ def test_non_finite_parameters_are_never_kept(value, checkpoint_every_s):
 def test_finite_training_is_untouched():
     model, saved = Blowup(bad_step=-1, value=0.0), []
     reason = run_loop(
-        model,
+        Trainer(model),
         data(),
         None,
         None,

@@ -36,13 +36,14 @@ def test_learns_an_exposure_difference():
     scene = torch.nn.Parameter(torch.full((3,), 0.2))
     app = AppearanceCorrection(2, lr=1e-2)  # (no camera anchors needed for training images)
     opt = torch.optim.Adam([scene], lr=1e-2)
+    app_opt = torch.optim.Adam([app.deltas], lr=app.lr, eps=1e-15)  # as the 3dgs trainer's
     targets = [torch.full((3,), 0.5), torch.full((3,), 0.4)]
     for step in range(1500):
         i = step % 2
         loss = ((app(scene, i) - targets[i]) ** 2).sum()
-        opt.zero_grad(), app.optimizer.zero_grad()
+        opt.zero_grad(), app_opt.zero_grad()
         loss.backward()
-        opt.step(), app.optimizer.step()
+        opt.step(), app_opt.step()
     with torch.no_grad():
         assert app(scene, 0).tolist() == pytest.approx([0.5] * 3, abs=2e-3)
         assert app(scene, 1).tolist() == pytest.approx([0.4] * 3, abs=2e-3)

@@ -23,7 +23,7 @@ from torch.utils._pytree import tree_flatten
 
 import recon
 from recon import devices
-from tests.conftest import sphere_scene
+from tests.conftest import sphere_scene, train_step
 
 RECON = str(Path(recon.__file__).parent)
 # torch's own Python between a caller and the mode: the dispatch, and the Python-level wrappers
@@ -186,11 +186,11 @@ def _host_tensors(model) -> tuple[Tensor, ...]:
 def _watched_steps(model, data, warm_up: int, watched: range) -> list[tuple[str, str]]:
     torch.manual_seed(0)
     for step in range(warm_up):
-        model.train_step(data, step)
+        train_step(model, data, step)
     mode = HostRoundTrips(_host_tensors(model))
     with mode:
         for step in watched:
-            model.train_step(data, step)
+            train_step(model, data, step)
     return mode.seen
 
 
@@ -209,11 +209,11 @@ def test_ngp_termination_prepass_makes_no_host_round_trip(torch_paths):
     `march_terminated`'s rounds), taken once termination drops most samples."""
     model, data = _scene("ngp")
     for step in range(3):
-        model.train_step(data, step)
+        train_step(model, data, step)
     model._kept_fraction = 0.0
     mode = HostRoundTrips(_host_tensors(model))
     with mode:
-        model.train_step(data, 3)
+        train_step(model, data, 3)
     assert not mode.seen, mode.seen
 
 

@@ -13,6 +13,7 @@ from recon.models.nerf import PRESETS, RAY_BUCKET, NeRFConfig, NeRFMLP, NeRFMode
 from recon.models.raymarch import mlp_dtype, ray_bounds
 from recon.volrend import scene_to_unit_cube, volume_render
 from recon.volrend.occupancy import cell_points
+from tests.conftest import train_step, trainer_of
 from tests.models.test_ngp import eval_psnr, mean_colour_psnr, sphere_scene
 
 SMALL = NeRFConfig(
@@ -97,7 +98,7 @@ def test_bf16_mlp_renders_like_fp32_and_trains():
     half.load_state_dict(exact.state_dict())
     a, b = exact.render(data.cameras[0]), half.render(data.cameras[0])
     assert b["rgb"].dtype == torch.float32 and (a["rgb"] - b["rgb"]).abs().max() < 0.03
-    stats = half.train_step(data, 0)
+    stats = train_step(half, data, 0)
     assert torch.isfinite(torch.as_tensor(stats["loss"]))
     grads = [p.grad for p in half.parameters() if p.grad is not None]
     assert grads and all(g.dtype == torch.float32 and torch.isfinite(g).all() for g in grads)
@@ -139,9 +140,9 @@ def test_learns_sphere_and_renders():
     data, info, depths = sphere_scene(8, 24)
     model = NeRFModel(SMALL, info)
     baseline = mean_colour_psnr(data.images)
-    first = model.train_step(data, 0)
+    first = train_step(model, data, 0)
     for step in range(1, 150):
-        stats = model.train_step(data, step)
+        stats = train_step(model, data, step)
     assert stats["loss"] < 0.2 * first["loss"]
     model.eval()
     out = model.render(data.cameras[0])
@@ -221,19 +222,19 @@ def test_resume_is_exact():
     data, info, _ = sphere_scene(n_cams=3, size=12)
     a = NeRFModel(SMALL, info)
     for step in range(5):
-        a.train_step(data, step)
+        train_step(a, data, step)
     b = NeRFModel(SMALL, info)
     b.load_state_dict(copy.deepcopy(a.state_dict()))
-    b.load_training_state(copy.deepcopy(a.training_state()))
+    trainer_of(b).load_state_dict(copy.deepcopy(trainer_of(a).state_dict()))
     for step in range(5, 10):
-        assert a.train_step(data, step)["loss"] == b.train_step(data, step)["loss"]
+        assert train_step(a, data, step)["loss"] == train_step(b, data, step)["loss"]
 
 
 def test_unbounded_scene_and_misses():
     data, info, _ = sphere_scene(n_cams=3, size=12)
     unb = SceneInfo(aabb=info.aabb, unbounded=True, background=info.background, near=0.2, far=50.0)
     model = NeRFModel(SMALL, unb)
-    losses = [model.train_step(data, s)["loss"] for s in range(30)]
+    losses = [train_step(model, data, s)["loss"] for s in range(30)]
     assert losses[-1] < losses[0]
     out = model.render(data.cameras[0])
     assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["depth"]).all()
@@ -245,7 +246,7 @@ def test_unbounded_scene_and_misses():
         far=6.0,
     )
     model = NeRFModel(SMALL, away)
-    assert torch.isfinite(torch.as_tensor(model.train_step(data, 0)["loss"]))
+    assert torch.isfinite(torch.as_tensor(train_step(model, data, 0)["loss"]))
     out = model.render(data.cameras[0])
     torch.testing.assert_close(out["rgb"], info.background.expand(12, 12, 3))
 
@@ -307,7 +308,7 @@ def test_unbounded_scene_seeds_from_points_and_missed_rays_see_the_learned_backg
     unit = scene_to_unit_cube(info.points, info.aabb, True)
     assert grid.is_occupied(unit).all() and 0 < grid.occupancy_fraction() < 0.1
     assert model.environment is not None  # auto: learned for an unbounded scene
-    losses = [model.train_step(data, s)["loss"] for s in range(20)]
+    losses = [train_step(model, data, s)["loss"] for s in range(20)]
     assert losses[-1] < losses[0] and model.environment.net[2].weight.grad is not None
     # rays that cross no occupied cell get the environment map, with its gradient
     grid.occupied.fill_(False)
@@ -316,7 +317,7 @@ def test_unbounded_scene_seeds_from_points_and_missed_rays_see_the_learned_backg
     _, fine = model._render_rays(o, d, jitter=False)
     assert not fine["hit"].any() and (fine["acc"] == 0).all()
     torch.testing.assert_close(fine["rgb"], model.environment(d))
-    model.optimizer.zero_grad(set_to_none=True)
+    trainer_of(model).optimizers["main"].zero_grad(set_to_none=True)
     fine["rgb"].sum().backward()
     assert model.environment.net[0].weight.grad.abs().sum() > 0
     scene_bg = NeRFModel(NeRFConfig(**{**SMALL.__dict__, "background": "scene"}), info)

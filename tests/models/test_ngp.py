@@ -13,6 +13,7 @@ from recon.cameras.look_at import look_at
 from recon.cameras.rays import camera_rays
 from recon.models.base import METHODS, SceneInfo, TrainData
 from recon.models.ngp import PRESETS, NGPConfig, NGPModel, uses_distortion
+from tests.conftest import train_step, trainer_of
 
 RADIUS = 0.5
 
@@ -118,9 +119,9 @@ def test_learns_sphere_and_renders():
     data, info, depths = sphere_scene(8, 24)
     model = NGPModel(SMALL, info)
     baseline = mean_colour_psnr(data.images)
-    first = model.train_step(data, 0)
+    first = train_step(model, data, 0)
     for step in range(1, 150):
-        stats = model.train_step(data, step)
+        stats = train_step(model, data, step)
     assert stats["loss"] < 0.2 * first["loss"]
     # the occupancy grid has pruned empty space, and marching now takes far fewer samples
     assert 0 < stats["occupied"] < 0.4 and stats["samples_per_ray"] < 0.5 * first["samples_per_ray"]
@@ -147,12 +148,12 @@ def test_resume_is_exact():
     cfg = NGPConfig(**{**SMALL.__dict__, "samples_per_batch": 3000})  # the ray batch adapts
     a = NGPModel(cfg, info)
     for step in range(20):
-        a.train_step(data, step)
+        train_step(a, data, step)
     b = NGPModel(cfg, info)
     b.load_state_dict(copy.deepcopy(a.state_dict()))
-    b.load_training_state(copy.deepcopy(a.training_state()))
+    trainer_of(b).load_state_dict(copy.deepcopy(trainer_of(a).state_dict()))
     for step in range(20, 36):  # crosses an occupancy update (step 32), after warm-up
-        la, lb = a.train_step(data, step), b.train_step(data, step)
+        la, lb = train_step(a, data, step), train_step(b, data, step)
         assert la["loss"] == lb["loss"]
     for (na, pa), (_, pb) in zip(a.state_dict().items(), b.state_dict().items()):
         assert torch.equal(pa, pb), na
@@ -170,7 +171,7 @@ def test_misses_and_empty_batches_are_safe():
         far=6.0,
     )
     model = NGPModel(SMALL, far_info)
-    stats = model.train_step(data, 0)
+    stats = train_step(model, data, 0)
     assert math.isfinite(stats["loss"]) and stats["samples_per_ray"] == 0
     out = model.render(data.cameras[0])
     torch.testing.assert_close(out["rgb"], info.background.expand(8, 8, 3))
@@ -182,7 +183,7 @@ def test_unbounded_scene_trains():
     info = SceneInfo(aabb=info.aabb, unbounded=True, background=info.background, near=0.1, far=20.0)
     # cone_angle 1/32: steps grow from t = step / cone ~ 1.2 on, ~120 samples out to t = 20
     model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 32}), info)
-    losses = [model.train_step(data, s)["loss"] for s in range(25)]
+    losses = [train_step(model, data, s)["loss"] for s in range(25)]
     assert losses[-1] < losses[0]
     out = model.render(data.cameras[1])
     assert torch.isfinite(out["rgb"]).all() and out["rgb"].shape == (16, 16, 3)
@@ -253,11 +254,11 @@ def test_unbounded_first_step_is_capped_and_seeded_from_points():
         cfg, SceneInfo(**{**info.__dict__, "points": torch.cat([info.points, far])})
     )
     assert torch.equal(with_far.occupancy.occupied, grid.occupied)
-    stats = model.train_step(data, 0)
+    stats = train_step(model, data, 0)
     assert 0 < stats["samples_per_ray"] <= 40
     unseeded = NGPModel(cfg, SceneInfo(**{**info.__dict__, "points": None}))
     assert unseeded.occupancy.occupied.all()  # no points: every cell, as before
-    assert unseeded.train_step(data, 0)["samples_per_ray"] == 40  # ~150 steps to t = 100, capped
+    assert train_step(unseeded, data, 0)["samples_per_ray"] == 40  # ~150 steps to t = 100, capped
     # uncapped, every cell occupied: the whole ray, its far part linear in disparity (~150 steps),
     # not ~64 ln(100 / 2.3) ~ 240 more cone steps
     from recon.volrend.occupancy import _warp
@@ -277,7 +278,7 @@ def test_learned_background_fills_what_the_volume_leaves_open():
     model = NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64}), info)
     assert model.environment is not None  # auto: learned for an unbounded scene
     for step in range(120):
-        model.train_step(data, step)
+        train_step(model, data, step)
     model.eval()
     out = model.render(data.cameras[0])
     _, d, _ = camera_rays(data.cameras, 0)
@@ -375,10 +376,12 @@ def test_distortion_loss_is_added_on_the_normalized_marching_distance():
     s = model.normalized_distance(t)
     torch.testing.assert_close(s[[0, -1]], torch.tensor([0.0, 1.0]))
     assert (s.diff() > 0).all()
-    stats = model.train_step(data, 0)
+    stats = train_step(model, data, 0)
     mse = 10 ** (-stats["psnr"] / 10)
     assert stats["loss"] > mse * (1 + 1e-4)  # the distortion term is part of the loss
-    plain = NGPModel(
-        NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion": "off"}), info
-    ).train_step(data, 0)
+    plain = train_step(
+        NGPModel(NGPConfig(**{**SMALL.__dict__, "cone_angle": 1 / 64, "distortion": "off"}), info),
+        data,
+        0,
+    )
     torch.testing.assert_close(float(plain["loss"]), 10 ** (-float(plain["psnr"]) / 10))

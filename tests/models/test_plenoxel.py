@@ -11,7 +11,7 @@ from recon.models.plenoxel import PlenoxelConfig, PlenoxelModel
 from recon.models.raymarch import render_image
 from recon.volrend import ray_aabb_intersect
 from recon.volrend.occupancy import cell_points
-from tests.conftest import sphere_scene
+from tests.conftest import sphere_scene, train_step, trainer_of
 
 
 def test_trilinear_weights_sum_to_one_and_interpolate_linear_fields():
@@ -77,7 +77,7 @@ def test_plenoxel_learns_a_sphere():
     cfg = sphere_config()
     model = PlenoxelModel(cfg, info)
     baseline = 10 * math.log10(1 / data.images.var(dim=(0, 1, 2)).mean().item())
-    losses = [model.train_step(data, s)["loss"] for s in range(120)]
+    losses = [train_step(model, data, s)["loss"] for s in range(120)]
     assert losses[-1] < 0.5 * losses[0]
     out = model.render(data.cameras[0])
     assert out["rgb"].shape == (24, 24, 3) and torch.isfinite(out["depth"]).all()
@@ -87,7 +87,7 @@ def test_plenoxel_learns_a_sphere():
     # the state round-trips into a fresh model (grids change size during training)
     fresh = PlenoxelModel(cfg, info)
     fresh.load_state_dict(model.state_dict())
-    fresh.load_training_state(model.training_state())
+    trainer_of(fresh).load_state_dict(trainer_of(model).state_dict())
     assert torch.allclose(fresh.render(data.cameras[0])["rgb"], out["rgb"], atol=1e-6)
 
 
@@ -96,7 +96,7 @@ def trained_sphere(steps=120, **overrides):
     data, info = sphere_scene()
     model = PlenoxelModel(sphere_config(**overrides), info)
     for s in range(steps):
-        model.train_step(data, s)
+        train_step(model, data, s)
     return model, data
 
 
@@ -257,7 +257,7 @@ def test_one_pass_render_matches_the_sample_path_after_more_training():
     model, data = trained_sphere(steps=80)
     for extra in (0, 2):
         for s in range(80, 80 + extra):
-            model.train_step(data, s)
+            train_step(model, data, s)
         for i in (0, 3):
             fast = model.render(data.cameras[i])
             slow = render_image(model._render_chunk, data.cameras[i].to("cpu"), model.cfg.chunk)
@@ -305,7 +305,7 @@ def test_one_pass_paths_match_the_sample_paths_on_an_unbounded_scene():
     info = dataclasses.replace(info, unbounded=True, far=6.0)
     model = PlenoxelModel(sphere_config(), info)
     for s in range(40):
-        model.train_step(data, s)
+        train_step(model, data, s)
     assert assert_march_twins(model, data, stride=5, jitter=False) > 0
     assert_render_twin(model, data.cameras[2], rgb_tolerance=1e-4)  # colour along each ray
 
@@ -348,7 +348,7 @@ def test_the_finest_lattice_is_sized_once_and_saved():
     assert sizes[0] == 16 and sizes[-1] >= 64 and sizes[-1] % 32 == 0
     assert "sized to the training photos" in note and str(sizes[-1]) in note
     for step in range(62):
-        model.train_step(data, step)
+        train_step(model, data, step)
     assert model.res == sizes[-1]
     fresh = PlenoxelModel(sphere_config(resolutions=(16, 0)), info)
     fresh.load_state_dict(model.state_dict())

@@ -16,7 +16,7 @@ from recon.models.plenoxel_bake import (
     vertices_in_cells,
 )
 from recon.models.registry import save_model
-from tests.conftest import sphere_scene
+from tests.conftest import sphere_scene, train_step
 from tests.models.test_ngp import SMALL
 from tests.models.test_plenoxel import sphere_config
 
@@ -119,7 +119,7 @@ def test_a_baked_ngp_renders_like_the_ngp_and_trains_on(tmp_path):
     data, info = sphere_scene()
     ngp = NGPModel(SMALL, info)
     for step in range(150):
-        ngp.train_step(data, step)
+        train_step(ngp, data, step)
     ngp.eval()
     path = save_model(tmp_path / "model.pt", "ngp", vars(SMALL), ngp)
     cfg = sphere_config(bake_from=str(path))
@@ -140,13 +140,13 @@ def test_a_baked_ngp_renders_like_the_ngp_and_trains_on(tmp_path):
     # training goes on from the bake (its first step bakes again from the file)
     model = PlenoxelModel(cfg, info)
     for step in range(40):
-        model.train_step(data, step)
+        train_step(model, data, step)
     after = psnr(torch.stack([model.render(data.cameras[i])["rgb"] for i in views]), truth)
     assert after > before, (before, after)
     # a plenoxel started from nothing is far behind after the same steps
     scratch = PlenoxelModel(sphere_config(), info)
     for step in range(40):
-        scratch.train_step(data, step)
+        train_step(scratch, data, step)
     behind = psnr(torch.stack([scratch.render(data.cameras[i])["rgb"] for i in views]), truth)
     assert after > behind + 3, (after, behind)
 

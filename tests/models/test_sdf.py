@@ -9,6 +9,7 @@ import torch
 from recon.models.base import METHODS
 from recon.models.sdf import SDFConfig, SDFModel
 from recon.volrend.sdf_density import volsdf_density
+from tests.conftest import train_step, trainer_of
 from tests.models.test_ngp import RADIUS, eval_psnr, mean_colour_psnr, sphere_scene
 
 SMALL = SDFConfig(
@@ -78,7 +79,7 @@ def test_training_fits_the_sphere_surface_and_its_colours():
     data, info, _ = sphere_scene(n_cams=8, size=24)
     model = SDFModel(SMALL, info)
     for step in range(250):
-        logs = model.train_step(data, step)
+        logs = train_step(model, data, step)
     assert math.isfinite(logs["loss"]) and logs["eikonal"] < 0.1
     assert eval_psnr(model, data) > mean_colour_psnr(data.images) + 8
     # the zero level set is the sphere of radius RADIUS (0.5 of the box: also the initial one,
@@ -111,7 +112,7 @@ def test_training_moves_the_surface_to_a_smaller_sphere():
     with torch.no_grad():
         before = model.sdf(RADIUS * x).abs().mean().item()
     for step in range(300):
-        model.train_step(data, step)
+        train_step(model, data, step)
     with torch.no_grad():
         after = model.sdf(RADIUS * x).abs().mean().item()
     # within half a pixel's footprint of the sphere, as in the fit test above
@@ -122,11 +123,11 @@ def test_training_state_round_trip_resumes_identically():
     data, info, _ = sphere_scene(n_cams=4, size=16)
     a = SDFModel(SMALL, info)
     for step in range(5):
-        a.train_step(data, step)
+        train_step(a, data, step)
     b = SDFModel(SMALL, info)
     b.load_state_dict(a.state_dict())
-    b.load_training_state(a.training_state())
-    la, lb = a.train_step(data, 5), b.train_step(data, 5)
+    trainer_of(b).load_state_dict(trainer_of(a).state_dict())
+    la, lb = train_step(a, data, 5), train_step(b, data, 5)
     assert la["loss"] == lb["loss"]
 
 
@@ -167,7 +168,7 @@ def test_random_background_where_the_photos_have_alpha():
     assert not learned._random_background(with_alpha)
     with pytest.raises(ValueError, match="needs training photos with alpha"):
         SDFModel(SDFConfig(random_background="on"), scene)._random_background(data)
-    assert math.isfinite(model.train_step(with_alpha, 0)["loss"])  # on random colours
+    assert math.isfinite(train_step(model, with_alpha, 0)["loss"])  # on random colours
     for bad in ({"random_background": "maybe"}, {"mask_weight": -0.1}):
         with pytest.raises(ValueError, match="must be"):
             SDFModel(SDFConfig(**bad), scene)
@@ -212,7 +213,7 @@ def test_surface_points_pull_the_level_set_to_them_faster():
         data.surface_points = RADIUS * x if with_points else None
         model = SDFModel(SMALL, info)
         for step in range(40):
-            logs = model.train_step(data, step)
+            logs = train_step(model, data, step)
         with torch.no_grad():
             off[with_points] = model.sdf(RADIUS * x).abs().mean().item()
     assert logs["surface_points"] < 0.05

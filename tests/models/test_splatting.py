@@ -16,6 +16,7 @@ from recon.models.base import METHODS, SceneInfo, TrainData
 from recon.models.splatting import GaussianModel
 from recon.models.splatting_config import PRESETS, GaussiansConfig
 from recon.options import field_help
+from tests.conftest import train_step, trainer_of
 
 
 def look_at_origin(eye):
@@ -97,14 +98,16 @@ def test_training_fits_a_tiny_scene_and_densifies():
     model = GaussianModel(config(), scene)
     losses, counts = [], []
     for step in range(160):
-        stats = model.train_step(data, step)
+        stats = train_step(model, data, step)
         losses.append(stats["loss"])
         counts.append(stats["num_gaussians"])
-        for group in model.optimizer.param_groups:  # moments always shaped like their tensor
+        for group in (
+            trainer_of(model).optimizers["main"].param_groups
+        ):  # moments always shaped like their tensor
             p = group["params"][0]
             assert p is model.params[group["name"]]
-            if p in model.optimizer.state:
-                assert model.optimizer.state[p]["exp_avg"].shape == p.shape
+            if p in trainer_of(model).optimizers["main"].state:
+                assert trainer_of(model).optimizers["main"].state[p]["exp_avg"].shape == p.shape
     assert np.mean(losses[-16:]) < 0.5 * np.mean(losses[:16])
     psnr = np.mean(
         [
@@ -126,20 +129,20 @@ def straight_and_resumed(cfg, scene, data, saved_at: int, steps: int):
     runs end with the same Gaussians bit for bit."""
     straight = GaussianModel(cfg, scene)
     for step in range(steps):
-        straight.train_step(data, step)
+        train_step(straight, data, step)
     first = GaussianModel(cfg, scene)
     for step in range(saved_at):
-        first.train_step(data, step)
+        train_step(first, data, step)
     buffer = io.BytesIO()
-    torch.save({"model": first.state_dict(), "training": first.training_state()}, buffer)
+    torch.save({"model": first.state_dict(), "training": trainer_of(first).state_dict()}, buffer)
     buffer.seek(0)
     saved = torch.load(buffer, weights_only=True)
     resumed = GaussianModel(cfg, scene)
     resumed.load_state_dict(saved["model"])
-    resumed.load_training_state(saved["training"])
+    trainer_of(resumed).load_state_dict(saved["training"])
     assert resumed.num_gaussians == first.num_gaussians
     for step in range(saved_at, steps):
-        resumed.train_step(data, step)
+        train_step(resumed, data, step)
     for name in straight.params:
         assert torch.equal(straight.params[name], resumed.params[name]), name
     return straight, resumed, first
@@ -156,11 +159,13 @@ def test_image_init_replaces_the_random_start_at_step_0():
     scene, data = synthetic_scene()
     model = GaussianModel(config(init_from_images=True), scene)
     random_means = model.params["means"].detach().clone()
-    model.train_step(data, 0)
+    train_step(model, data, 0)
     assert model.num_gaussians <= 300 and not torch.equal(
         model.params["means"][:5], random_means[:5]
     )
-    for group in model.optimizer.param_groups:  # the optimizer follows the new tensors
+    for group in (
+        trainer_of(model).optimizers["main"].param_groups
+    ):  # the optimizer follows the new tensors
         assert group["params"][0] is model.params[group["name"]]
 
 
@@ -253,8 +258,8 @@ def test_scene_lrs_anneal_in_the_second_half_of_the_decay():
     assert model.anneal == 1.0
     model = GaussianModel(config(lr_anneal=0.1, lr_decay_steps=10), scene)
     for step in range(8):
-        model.train_step(data, step)
-    lrs = {g["name"]: g["lr"] for g in model.optimizer.param_groups}
+        train_step(model, data, step)
+    lrs = {g["name"]: g["lr"] for g in trainer_of(model).optimizers["main"].param_groups}
     for group, lr in scene_lrs(model.config, 7, 0.1).items():
         assert lrs[group] == pytest.approx(lr) and lr < getattr(model.config, SCENE_RATES[group])
 
@@ -282,7 +287,7 @@ def test_replan_shortens_the_schedules_and_the_densification_that_follows_them()
     assert fresh.replan(800, 650) == 800 and fresh.strategy.stop == 651
     # a checkpoint keeps the schedules as re-planned (clamps and ended ones included): resume
     resumed = GaussianModel(GaussiansConfig(**{**PRESETS["fast"], "schedule_steps": 1600}), scene)
-    resumed.load_training_state(fresh.training_state())
+    trainer_of(resumed).load_state_dict(trainer_of(fresh).state_dict())
     assert resumed.config == fresh.config and resumed.strategy == fresh.strategy
 
 
@@ -291,7 +296,7 @@ def test_coarse_to_fine_fits_downscaled_targets_first():
     model = GaussianModel(config(c2f_factor=4, c2f_interval=3), scene)
     sizes = []
     for step in range(8):
-        model.train_step(data, step)
+        train_step(model, data, step)
         sizes.append(sorted(data._levels))
     assert (
         sizes[0] == [4] and sizes[3] == [2, 4] and sizes[7] == [2, 4]
@@ -316,7 +321,7 @@ def test_appearance_learns_per_image_exposure_and_renders_with_the_nearest_corre
         torch.manual_seed(0)
         model = GaussianModel(config(appearance=mode, lr_appearance=0.005), scene)
         for step in range(200):
-            model.train_step(exposed, step)
+            train_step(model, exposed, step)
         fits[mode] = model
     on = fits["on"]
     assert (
@@ -348,12 +353,12 @@ def test_appearance_learns_per_image_exposure_and_renders_with_the_nearest_corre
         atol=1e-5,
     )
     buffer = io.BytesIO()
-    torch.save({"model": on.state_dict(), "training": on.training_state()}, buffer)
+    torch.save({"model": on.state_dict(), "training": trainer_of(on).state_dict()}, buffer)
     buffer.seek(0)
     saved = torch.load(buffer, weights_only=True)
     again = GaussianModel(config(appearance="on", lr_appearance=0.005), scene)
     again.load_state_dict(saved["model"])
-    again.load_training_state(saved["training"])
+    trainer_of(again).load_state_dict(saved["training"])
     assert torch.equal(again.appearance.deltas, on.appearance.deltas)
     assert torch.equal(again.appearance.centers, on.appearance.centers)
     assert torch.equal(again.render(data.cameras[1])["rgb"], on.render(data.cameras[1])["rgb"])
@@ -386,11 +391,11 @@ def test_abs_grad_densification_auto_threshold_and_accumulators():
     sums = {}
     for mode in ("off", "on"):
         model = GaussianModel(config(densify_abs_grad=mode), scene)
-        model.train_step(data, 0)
+        train_step(model, data, 0)
         sums[mode] = model.densify_state["grad2d"]
     assert (sums["on"] >= sums["off"] - 1e-9).all() and (sums["on"] > sums["off"] + 1e-6).any()
     model = GaussianModel(config(densify_abs_grad="on", densify_abs_grad_threshold=0.0002), scene)
-    counts = {model.train_step(data, step)["num_gaussians"] for step in range(45)}
+    counts = {train_step(model, data, step)["num_gaussians"] for step in range(45)}
     assert len(counts) > 1
 
 
@@ -398,7 +403,7 @@ def test_antialiased_model_trains_and_renders_with_compensated_opacities():
     scene, data = synthetic_scene(size=24)
     model = GaussianModel(config(antialiased=True), scene)
     for step in range(5):
-        assert math.isfinite(model.train_step(data, step)["loss"])
+        assert math.isfinite(train_step(model, data, step)["loss"])
     plain = GaussianModel(config(), scene)
     plain.load_state_dict(model.state_dict())
     out, ref = model.render(data.cameras[0]), plain.render(data.cameras[0])
@@ -413,7 +418,7 @@ def test_antialiased_splats_bake_the_mean_compensation_given_the_training_camera
     scene, data = synthetic_scene(size=24)
     model = GaussianModel(config(antialiased=True), scene)
     for step in range(3):
-        model.train_step(data, step)
+        train_step(model, data, step)
     raw = model.splats()["opacity_logits"]
     assert np.array_equal(raw, model.params["opacity_logits"].detach().numpy().reshape(-1))
     baked = model.splats(data.cameras)["opacity_logits"]

@@ -7,10 +7,11 @@ import pytest
 import torch
 
 from recon.cameras import Cameras
-from recon.models.base import MethodSpec, Model, register
+from recon.models.base import MethodSpec, Model, OptimizerSpec, ParamGroup, register
 from recon.options import field_help
 from recon.train.config import TrainConfig, apply_overrides
 from recon.train.loop import LoopState, eval_due, report_progress, run_loop, should_stop
+from recon.train.trainer import Trainer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,19 +25,18 @@ class Toy(Model):
     def __init__(self, poison_steps=()):
         super().__init__()
         self.color = torch.nn.Parameter(torch.zeros(3))
-        self.opt = torch.optim.SGD([self.color], lr=0.5)
         self.poison_steps = set(poison_steps)
         self.generator = torch.Generator().manual_seed(0)
 
-    def train_step(self, data, step):
+    def optimizers(self):
+        return {"main": OptimizerSpec([ParamGroup("color", [self.color], 0.5)], kind="sgd")}
+
+    def training_loss(self, data, step):
         loss = ((self.color - data.images.mean((0, 1, 2))) ** 2).mean()
         if step in self.poison_steps:  # a transient blow-up: happens once
             self.poison_steps.discard(step)
             loss = loss * float("nan")
-        self.opt.zero_grad()
-        loss.backward()
-        self.opt.step()
-        return {"loss": float(loss.detach())}
+        return loss, {"loss": float(loss.detach())}
 
     def render(self, camera: Cameras):
         h, w = int(camera.height[0]), int(camera.width[0])
@@ -104,9 +104,11 @@ def test_time_budget_counts_evaluations():
     cams, imgs = _held(4)
     st, logs = LoopState(), []
     cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01, eval_max_fraction=0.0)
-    model, data = SlowEval(0.05), _data()
+    trainer, data = Trainer(SlowEval(0.05)), _data()  # (building it: setup, not training)
     t0 = time.perf_counter()
-    assert run_loop(model, data, cams, imgs, cfg, st, logs.append, lambda s: None) == "time_budget"
+    assert (
+        run_loop(trainer, data, cams, imgs, cfg, st, logs.append, lambda s: None) == "time_budget"
+    )
     took = time.perf_counter() - t0
     assert 0.8 <= st.elapsed_s <= 1.1 and took <= 1.2
     assert st.wall_s < 0.5 * st.elapsed_s  # the steps are cheap: evaluation dominates
@@ -122,7 +124,9 @@ def test_slow_evaluations_are_capped_to_a_fraction_of_the_run():
     st, logs = LoopState(), []
     cfg = TrainConfig(method="toy", time_budget_s=1.0, eval_every_s=0.01)
     assert cfg.eval_max_fraction == 0.1
-    assert run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    assert run_loop(
+        Trainer(SlowEval(0.05)), _data(), cams, imgs, cfg, st, logs.append, lambda s: None
+    )
     evals = [e for e in logs if "test_psnr" in e]
     assert len(evals) == 1  # the final one; uncapped: one per 10 ms
     deferred = [e for e in logs if e.get("event") == "eval_deferred"]
@@ -137,7 +141,7 @@ def test_an_evaluation_that_fits_the_cap_runs_whole():
     cams, imgs = _held(4)
     st, logs = LoopState(), []
     cfg = TrainConfig(method="toy", time_budget_s=1.6, eval_every_s=1.0, eval_max_fraction=0.5)
-    run_loop(SlowEval(0.05), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    run_loop(Trainer(SlowEval(0.05)), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
     assert not [e for e in logs if e.get("event") == "eval_deferred"]
     assert len([e for e in logs if "test_psnr" in e]) == 2  # the periodic one and the final
 
@@ -159,7 +163,7 @@ def test_a_stale_reserve_is_remeasured_so_the_budget_is_used():
     model.on_render = cheaper
     st, logs = LoopState(), []
     cfg = TrainConfig(method="toy", time_budget_s=3.0, eval_every_s=1.5, eval_max_fraction=0.5)
-    assert run_loop(model, _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
+    assert run_loop(Trainer(model), _data(), cams, imgs, cfg, st, logs.append, lambda s: None)
     assert 2.9 <= st.elapsed_s <= 3.1, st.elapsed_s
     assert len([e for e in logs if "test_psnr" in e]) == 2  # the first and the final one
     assert len(renders) == 4 + 1 + 4  # first evaluation, one one-view re-measure, final
@@ -207,7 +211,7 @@ def test_interrupt_during_an_evaluation_stops_between_views():
     cfg = TrainConfig(method="toy", steps=100, eval_every_s=0.0, eval_max_fraction=0.0)
     with pytest.raises(KeyboardInterrupt):
         run_loop(
-            model,
+            Trainer(model),
             _data(),
             cams,
             imgs,
@@ -227,7 +231,7 @@ def test_non_finite_loss_raises_by_the_next_log():
         model, logs, saved = Toy(poison_steps={3}), [], []
         with pytest.raises(FloatingPointError, match="loss became nan"):
             run_loop(
-                model,
+                Trainer(model),
                 _data(),
                 None,
                 None,
@@ -302,21 +306,21 @@ def test_a_run_that_keeps_failing_says_so_in_run_json_and_its_log(tmp_path):
     assert log[-1]["event"] == "failed"
 
 
-def test_learning_rate_scale_applies_during_step_only():
-    from recon.train.stage import LearningRateScale
+def test_the_trainers_learning_rate_scale_multiplies_every_schedule():
+    """A rollback halves `Trainer.lr_scale`: every group's rate is its schedule's times it."""
+    from recon.train.trainer import Trainer
 
-    p = torch.nn.Parameter(torch.zeros(1))
-    opt = torch.optim.SGD([p], lr=0.3)
-    with LearningRateScale() as scale:
-        p.grad = torch.ones(1)
-        opt.step()
-        assert float(p.detach()) == pytest.approx(-0.3)
-        scale.scale = 0.25
-        opt.step()
-        assert float(p.detach()) == pytest.approx(-0.3 - 0.075)
-        assert opt.param_groups[0]["lr"] == 0.3  # the schedule's value is restored exactly
-    opt.step()  # hooks removed on exit
-    assert float(p.detach()) == pytest.approx(-0.3 - 0.075 - 0.3)
+    model = Toy()
+    trainer = Trainer(model)
+    data = _data()
+    trainer.step(data, 0)
+    assert float(model.color.detach()[0]) == pytest.approx(0.5 * 2 * 0.25 / 3)  # SGD, lr 0.5
+    trainer.lr_scale = 0.25
+    before = model.color.detach().clone()
+    trainer.step(data, 1)
+    grad = 2 * (before - 0.25) / 3
+    torch.testing.assert_close(model.color.detach(), before - 0.125 * grad)
+    assert trainer.optimizers["main"].param_groups[0]["lr"] == 0.125
 
 
 class Checker(Model):

@@ -8,6 +8,7 @@ import pytest
 from recon.train.config import TrainConfig
 from recon.train.loop import LoopState, run_loop
 from recon.train.replan import Replanner, projected_steps
+from recon.train.trainer import Trainer
 
 
 def test_projected_steps_worked_example():
@@ -51,9 +52,9 @@ def test_a_budgeted_loop_hands_the_model_a_shorter_run(monkeypatch):
             super().__init__()
             self.plan = Planned()
 
-        def train_step(self, data, step):
+        def training_loss(self, data, step):
             time.sleep(0.005)
-            return super().train_step(data, step)
+            return super().training_loss(data, step)
 
         def replan(self, schedule_steps, step):
             self.plan.calls.append((schedule_steps, step))
@@ -65,7 +66,7 @@ def test_a_budgeted_loop_hands_the_model_a_shorter_run(monkeypatch):
     monkeypatch.setattr(replan, "REPLAN_EVERY_S", 0.1)
     model, st, logs = Slow(), LoopState(), []
     cfg = TrainConfig(method="toy", time_budget_s=1.0)
-    assert run_loop(model, _data(), None, None, cfg, st, logs.append, lambda s: None)
+    assert run_loop(Trainer(model), _data(), None, None, cfg, st, logs.append, lambda s: None)
     assert len(model.plan.calls) >= 5  # ~9 windows after the warm-up one
     projected, at_step = model.plan.calls[0]
     assert at_step < projected < 1.3 * 1.0 / 0.005  # at most ~200 steps fit in 1 s
@@ -75,7 +76,9 @@ def test_a_budgeted_loop_hands_the_model_a_shorter_run(monkeypatch):
     assert events and events[-1]["schedule_steps"] == st.schedule_steps
     # a --steps run has no budget to re-plan against
     model, st = Slow(), LoopState()
-    run_loop(model, _data(), None, None, TrainConfig("toy", steps=30), st, logs.append, print)
+    run_loop(
+        Trainer(model), _data(), None, None, TrainConfig("toy", steps=30), st, logs.append, print
+    )
     assert model.plan.calls == [] and st.schedule_steps == 0
 
 

@@ -1,0 +1,112 @@
+"""Benchmark the report's 3D viewer on a trained run: bytes on disk, load time and frames per
+second in headless chromium on its software WebGL (SwiftShader: the CPU, no GPU).
+
+    python pipelines/bench_viewer.py -w bench/work/fox-real --run 3dgs-1800 [--size 1280x720]
+
+Writes the run's page (`recon view --run`'s WS/viewer/RUN.html), loads it, then renders
+`--frames` frames at `--size` while orbiting the held-out camera a little each frame (every
+frame re-sorts the splats, as an interactive orbit does) and writes
+bench/results/<date>-viewer-<workspace>-<run>.json and .md. Needs chromium and chromedriver
+(`make browser`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import click
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # tests.browser: the headless chromium of the browser tests
+
+from recon.eval.viewer import run_page
+from recon.io.atomic import atomic_write_json
+from recon.workspace import Workspace, atomic_write_text
+
+
+def measure(page: Path, run: str, width: int, height: int, frames: int) -> dict:
+    from tests.browser import chromium_driver, console_errors
+
+    with chromium_driver(webgl=True) as driver:
+        start = time.perf_counter()
+        driver.get(page.as_uri())
+        while not driver.execute_script("return window.reconViewersReady === true"):
+            if time.perf_counter() - start > 300:
+                raise RuntimeError("the viewer did not start within 5 minutes")
+            time.sleep(0.05)
+        load_ms = driver.execute_script("return window.reconViewersReadyMs")
+        times = driver.execute_script(
+            f"const v = window.reconViewers[{json.dumps(run)}];"
+            "if (!v) return null;"
+            f"v.setCamera(0); v.setSize({width}, {height}); const t = [];"
+            f"for (let i = 0; i < {frames}; i++) {{"
+            "  const t0 = performance.now(); v.orbit(0.01, 0.0); t.push(performance.now() - t0); }"
+            "return t;"
+        )
+        status = driver.execute_script("return document.querySelector('.recon-status').textContent")
+        errors = console_errors(driver)
+    if times is None:
+        raise RuntimeError(f"the viewer did not start: {status}")
+    times = sorted(times)
+    median = times[len(times) // 2]
+    return {
+        "load_ms": round(load_ms, 1),
+        "frame_ms_median": round(median, 2),
+        "fps": round(1000 / median, 2),
+        "frames": frames,
+        "size": [width, height],
+        "status": status,
+        "console_errors": errors,
+    }
+
+
+@click.command()
+@click.option("-w", "--workspace", required=True, type=click.Path(file_okay=False))
+@click.option("--run", required=True)
+@click.option("--size", default="1280x720", show_default=True)
+@click.option("--frames", default=20, show_default=True)
+@click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
+def main(workspace, run, size, frames, out_dir):
+    ws = Workspace.open(workspace)
+    width, height = (int(x) for x in size.split("x"))
+    page = run_page(ws, run)
+    script = page.parent / f"{run}.js"
+    doc = json.loads(script.read_text().split(" = ", 1)[1].rstrip().rstrip(";"))
+    count = doc["splats"]["count"] if "splats" in doc else 0
+    result = {
+        "workspace": str(ws.root),
+        "run": run,
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "machine": f"{platform.machine()} {os.cpu_count()} cpu",
+        "load_average": list(os.getloadavg()),
+        "gaussians_shown": count,
+        "gaussians": doc["splats"]["of"] if "splats" in doc else 0,
+        "scene_bytes": script.stat().st_size,
+        "bytes_per_gaussian": round(script.stat().st_size / count, 1) if count else None,
+        **measure(page, run, width, height, frames),
+    }
+    name = f"{dt.date.today()}-viewer-{ws.root.name}-{run}"
+    out = Path(out_dir)
+    atomic_write_json(out / f"{name}.json", result)
+    atomic_write_text(
+        out / f"{name}.md",
+        f"# The 3D viewer on {ws.root.name} / {run} ({result['date']})\n\n"
+        f"Headless chromium, software WebGL (SwiftShader), {result['machine']}, load average "
+        f"{result['load_average'][0]:.2f} at the start.\n\n"
+        "| Gaussians shown (of) | scene file | bytes a Gaussian | load | frame at "
+        f"{width}x{height} (median of {frames}) | fps |\n|---|---|---|---|---|---|\n"
+        f"| {count:,} ({result['gaussians']:,}) | {result['scene_bytes'] / 1e6:.1f} MB | "
+        f"{result['bytes_per_gaussian']} | {result['load_ms'] / 1000:.2f} s | "
+        f"{result['frame_ms_median']:.0f} ms | {result['fps']:.1f} |\n",
+    )
+    click.echo(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,668 @@
+// recon's 3D viewer: a run's Gaussians (or its mesh), the sfm points and the camera frusta in
+// WebGL2, written for recon (no dependencies, works from file:// and from a web server).
+//
+// The splats are drawn as recon's CPU rasterizer draws them (Kerbl et al. 2023, Sec. 4 and 6):
+// EWA projection with the 0.3 px dilation and the 1.3x frustum guard band, the 3-sigma radius
+// widened to whole 16 or 32 px tiles, alpha = min(0.99, o exp(power)) dropped below 1/255,
+// SH colour + 0.5 clamped at 0, antialiased runs with the sqrt(det ratio) compensation
+// (Yu et al. 2024, eq. 12), blended back to front over the background in a float target.
+// The scene arrives as `window.RECON_VIEWS[name]` from a script file beside the page.
+"use strict";
+
+(function () {
+  const TILE = 16, TILE_LARGE = 32, LARGE_IMAGE = 384 * 384;
+  const DILATION = 0.3, GUARD_BAND = 1.3;
+  const TEX_WIDTH = 2048;
+
+  // The compressed PLY's layout (PlayCanvas; `recon.gaussians.splat_formats`): per chunk of
+  // 256 Gaussians 18 float bounds, per Gaussian 4 uint32 (position and log-scale 11-10-11 bit
+  // fractions of the chunk's range, rotation "smallest three", RGBA8 colour) and one byte per
+  // SH coefficient and channel -> the float arrays the exact path carries.
+  const SH_C0 = 0.28209479177387814;
+  function decompress(s) {
+    const n = s.count, k = s.sh_bases;
+    const chunks = decode(s.chunks, Float32Array), packed = decode(s.packed, Uint32Array);
+    const rest = k > 1 ? decode(s.sh_rest, Uint8Array) : null;
+    const means = new Float32Array(3 * n), cov = new Float32Array(6 * n);
+    const opacity = new Float32Array(n), sh = new Float32Array(3 * k * n);
+    const f11 = (v, shift, bits) => ((v >>> shift) & ((1 << bits) - 1)) / ((1 << bits) - 1);
+    for (let i = 0; i < n; i++) {
+      const c = chunks.subarray(18 * (i >> 8), 18 * (i >> 8) + 18);
+      const [p, r, sc, col] = packed.subarray(4 * i, 4 * i + 4);
+      const tp = [f11(p, 21, 11), f11(p, 11, 10), f11(p, 0, 11)];
+      const ts = [f11(sc, 21, 11), f11(sc, 11, 10), f11(sc, 0, 11)];
+      const scale = [0, 1, 2].map((a) => Math.exp(c[6 + a] * (1 - ts[a]) + c[9 + a] * ts[a]));
+      for (let a = 0; a < 3; a++) means[3 * i + a] = c[a] * (1 - tp[a]) + c[3 + a] * tp[a];
+      // rotation: the largest component left out, the others as 10-bit q sqrt(2)/2 + 1/2
+      const three = [(r >>> 20) & 1023, (r >>> 10) & 1023, r & 1023].map((v) => (v / 1023 - 0.5) * Math.SQRT2);
+      const largest = r >>> 30, q = [0, 0, 0, 0];
+      q[largest] = Math.sqrt(Math.max(0, 1 - three[0] ** 2 - three[1] ** 2 - three[2] ** 2));
+      for (let a = 0, j = 0; a < 4; a++) if (a !== largest) q[a] = three[j++];
+      const [w, x, y, z] = q;
+      const R = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+      ];
+      const M = (row, col) => R[3 * row + col] * scale[col];  // R diag(s): Sigma = M M^T
+      const S = (a, b) => M(a, 0) * M(b, 0) + M(a, 1) * M(b, 1) + M(a, 2) * M(b, 2);
+      cov.set([S(0, 0), S(0, 1), S(0, 2), S(1, 1), S(1, 2), S(2, 2)], 6 * i);
+      const rgba = [(col >>> 24) & 255, (col >>> 16) & 255, (col >>> 8) & 255, col & 255].map((v) => v / 255);
+      opacity[i] = rgba[3];
+      for (let a = 0; a < 3; a++)
+        sh[3 * k * i + a] = (c[12 + a] * (1 - rgba[a]) + c[15 + a] * rgba[a] - 0.5) / SH_C0;
+      for (let a = 0; a < 3; a++)
+        for (let j = 1; j < k; j++)
+          sh[3 * (k * i + j) + a] = rest[3 * (k - 1) * i + a * (k - 1) + (j - 1)] * (8 / 255) - 4;
+    }
+    return { means, cov, opacity, sh, intervals: null };
+  }
+
+  function decode(b64, Type) {
+    const bin = atob(b64);
+    const bytes = new Uint8Array(bin.length);
+    for (let i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
+    return new Type(bytes.buffer);
+  }
+
+  // ---- small linear algebra on row-major 4x4 arrays ------------------------------------------
+  function matmul(a, b) {
+    const o = new Float64Array(16);
+    for (let i = 0; i < 4; i++)
+      for (let j = 0; j < 4; j++) {
+        let s = 0;
+        for (let k = 0; k < 4; k++) s += a[4 * i + k] * b[4 * k + j];
+        o[4 * i + j] = s;
+      }
+    return o;
+  }
+  function rigidInverse(m) { // [R t; 0 1]^-1 = [R^T -R^T t; 0 1]
+    const o = new Float64Array(16);
+    for (let i = 0; i < 3; i++) {
+      for (let j = 0; j < 3; j++) o[4 * i + j] = m[4 * j + i];
+      o[4 * i + 3] = -(m[i] * m[3] + m[4 + i] * m[7] + m[8 + i] * m[11]);
+    }
+    o[15] = 1;
+    return o;
+  }
+  function rotation(axis, angle) { // Rodrigues, as a row-major 4x4
+    const [x, y, z] = axis, c = Math.cos(angle), s = Math.sin(angle), t = 1 - c;
+    return new Float64Array([
+      t * x * x + c, t * x * y - s * z, t * x * z + s * y, 0,
+      t * x * y + s * z, t * y * y + c, t * y * z - s * x, 0,
+      t * x * z - s * y, t * y * z + s * x, t * z * z + c, 0,
+      0, 0, 0, 1,
+    ]);
+  }
+  function translation(v) {
+    return new Float64Array([1, 0, 0, v[0], 0, 1, 0, v[1], 0, 0, 1, v[2], 0, 0, 0, 1]);
+  }
+  function normalize(v) {
+    const n = Math.hypot(v[0], v[1], v[2]) || 1;
+    return [v[0] / n, v[1] / n, v[2] / n];
+  }
+
+  // ---- WebGL helpers -------------------------------------------------------------------------
+  function program(gl, vs, fs) {
+    const p = gl.createProgram();
+    for (const [type, src] of [[gl.VERTEX_SHADER, vs], [gl.FRAGMENT_SHADER, fs]]) {
+      const s = gl.createShader(type);
+      gl.shaderSource(s, src);
+      gl.compileShader(s);
+      if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+      gl.attachShader(p, s);
+    }
+    gl.linkProgram(p);
+    if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
+    return p;
+  }
+  function floatTexture(gl, texels, data) { // RGBA32F, TEX_WIDTH texels a row
+    const rows = Math.max(1, Math.ceil(texels / TEX_WIDTH));
+    const padded = new Float32Array(rows * TEX_WIDTH * 4);
+    padded.set(data);
+    const t = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, t);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, TEX_WIDTH, rows, 0, gl.RGBA, gl.FLOAT, padded);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+      gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+    return t;
+  }
+
+  const SPLAT_VS = `#version 300 es
+precision highp float; precision highp int;
+uniform highp sampler2D uGeom;   // 3 texels a splat: mean.xyz opacity | cov xx xy xz yy |
+                                 // cov yz zz, finest training sampling interval
+uniform highp sampler2D uSh;     // 16 texels a splat: SH coefficient k as rgb
+uniform mat4 uView;              // cam_from_world (OpenCV: x right, y down, z forward)
+uniform vec4 uIntr;              // fx fy cx cy (px)
+uniform vec2 uSize;              // width height (px)
+uniform vec3 uCenter;            // camera centre (world)
+uniform int uDegree, uTile, uAntialiased, uFootprint;
+uniform float uNear;
+layout(location = 0) in uint aIndex;  // the splat, in back-to-front order
+out vec3 vColor; out vec3 vConic; out vec2 vMean; out float vOpacity;
+ivec2 texel(int i) { return ivec2(i % ${TEX_WIDTH}, i / ${TEX_WIDTH}); }
+vec3 sh(int base, int k) { return texelFetch(uSh, texel(base + k), 0).rgb; }
+void main() {
+  int i = int(aIndex);
+  vec4 g0 = texelFetch(uGeom, texel(3 * i), 0);
+  vec4 g1 = texelFetch(uGeom, texel(3 * i + 1), 0);
+  vec4 g2 = texelFetch(uGeom, texel(3 * i + 2), 0);
+  gl_Position = vec4(2.0, 2.0, 2.0, 1.0);  // culled unless drawn below
+  vec3 p = (uView * vec4(g0.xyz, 1.0)).xyz;
+  if (p.z <= uNear) return;
+  mat3 S = mat3(g1.x, g1.y, g1.z, g1.y, g1.w, g2.x, g1.z, g2.x, g2.y);
+  mat3 W = mat3(uView);
+  mat3 Sc = W * S * transpose(W);
+  float fx = uIntr.x, fy = uIntr.y, cx = uIntr.z, cy = uIntr.w;
+  float mx = (GUARD_BAND_M1) * uSize.x / (2.0 * fx), my = (GUARD_BAND_M1) * uSize.y / (2.0 * fy);
+  float u = clamp(p.x / p.z, -cx / fx - mx, (uSize.x - cx) / fx + mx);
+  float v = clamp(p.y / p.z, -cy / fy - my, (uSize.y - cy) / fy + my);
+  vec3 j0 = (fx / p.z) * vec3(1.0, 0.0, -u), j1 = (fy / p.z) * vec3(0.0, 1.0, -v);
+  // the 0.3 px^2 dilation, held in world units where this view is finer than the training
+  // views were (the footprint filter: 0.3 max(1, (f T / z)^2))
+  float ratio = fx * g2.z / p.z;
+  float dil = uFootprint == 1 ? ${DILATION} * max(1.0, ratio * ratio) : ${DILATION};
+  float a = dot(j0, Sc * j0) + dil, b = dot(j0, Sc * j1), c = dot(j1, Sc * j1) + dil;
+  float det = a * c - b * b;
+  if (!(det > 0.0)) return;
+  vec2 mean = vec2(fx * p.x / p.z + cx, fy * p.y / p.z + cy);
+  float halfGap = max(length(vec2(0.5 * (a - c), b)), sqrt(0.1));
+  float r = ceil(3.0 * sqrt(0.5 * (a + c) + halfGap));
+  if (mean.x + r <= 0.0 || mean.x - r >= uSize.x || mean.y + r <= 0.0 || mean.y - r >= uSize.y) return;
+  float opacity = g0.w;
+  if (uAntialiased == 1) {
+    float A = c / det, B = -b / det, C = a / det;
+    float kept = 1.0 - dil * (A + C) + dil * dil * (A * C - B * B);  // det Sigma / det Sigma'
+    opacity *= sqrt(clamp(kept, 1e-12, 1.0));
+  }
+  // the pixels of every tile the 3-sigma box touches (the rasterizer's candidates)
+  vec2 grid = ceil(uSize / float(uTile));
+  vec2 lo = min(max(floor((mean - r) / float(uTile)), 0.0), grid);
+  vec2 hi = min(max(floor((mean + r) / float(uTile)), -1.0) + 1.0, grid);
+  if (any(lessThanEqual(hi, lo))) return;
+  vec2 corner = vec2(gl_VertexID & 1, gl_VertexID >> 1);
+  vec2 pixel = mix(lo, hi, corner) * float(uTile);
+  gl_Position = vec4(2.0 * pixel.x / uSize.x - 1.0, 1.0 - 2.0 * pixel.y / uSize.y, 0.0, 1.0);
+  // colour: SH up to uDegree at the direction from the camera centre, + 0.5, >= 0
+  vec3 d = normalize(g0.xyz - uCenter);
+  float x = d.x, y = d.y, z = d.z;
+  int base = 16 * i;
+  vec3 col = 0.28209479177387814 * sh(base, 0);
+  if (uDegree >= 1)
+    col += -0.4886025119029199 * y * sh(base, 1) + 0.4886025119029199 * z * sh(base, 2)
+      - 0.4886025119029199 * x * sh(base, 3);
+  if (uDegree >= 2) {
+    float xx = x * x, yy = y * y, zz = z * z;
+    col += 1.0925484305920792 * x * y * sh(base, 4) - 1.0925484305920792 * y * z * sh(base, 5)
+      + 0.31539156525252005 * (2.0 * zz - xx - yy) * sh(base, 6)
+      - 1.0925484305920792 * x * z * sh(base, 7) + 0.5462742152960396 * (xx - yy) * sh(base, 8);
+    if (uDegree >= 3)
+      col += -0.5900435899266435 * y * (3.0 * xx - yy) * sh(base, 9)
+        + 2.890611442640554 * x * y * z * sh(base, 10)
+        - 0.4570457994644658 * y * (4.0 * zz - xx - yy) * sh(base, 11)
+        + 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh(base, 12)
+        - 0.4570457994644658 * x * (4.0 * zz - xx - yy) * sh(base, 13)
+        + 1.445305721320277 * z * (xx - yy) * sh(base, 14)
+        - 0.5900435899266435 * x * (xx - 3.0 * yy) * sh(base, 15);
+  }
+  vColor = max(col + 0.5, 0.0);
+  vConic = vec3(c, -b, a) / det;
+  vMean = mean;
+  vOpacity = opacity;
+}`.replace(/GUARD_BAND_M1/g, (GUARD_BAND - 1).toFixed(4));
+
+  const SPLAT_FS = `#version 300 es
+precision highp float;
+uniform vec2 uSize;
+in vec3 vColor; in vec3 vConic; in vec2 vMean; in float vOpacity;
+out vec4 outColor;
+void main() {
+  vec2 pixel = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);  // recon's (col + 0.5, row + 0.5)
+  vec2 d = vMean - pixel;
+  float power = -0.5 * (vConic.x * d.x * d.x + vConic.z * d.y * d.y) - vConic.y * d.x * d.y;
+  float alpha = min(0.99, vOpacity * exp(power));
+  if (power > 0.0 || alpha < 1.0 / 255.0) discard;
+  outColor = vec4(vColor * alpha, alpha);  // premultiplied: drawn back to front with "over"
+}`;
+
+  const LINE_VS = `#version 300 es
+precision highp float;
+uniform mat4 uView; uniform vec4 uIntr; uniform vec2 uSize; uniform float uNear;
+layout(location = 0) in vec3 aPos; layout(location = 1) in vec3 aColor; out vec3 vColor;
+void main() {
+  vec3 p = (uView * vec4(aPos, 1.0)).xyz;
+  float z = max(p.z, uNear);
+  vec2 px = vec2(uIntr.x * p.x / z + uIntr.z, uIntr.y * p.y / z + uIntr.w);
+  gl_Position = vec4(2.0 * px.x / uSize.x - 1.0, 1.0 - 2.0 * px.y / uSize.y, 0.0, 1.0);
+  if (p.z <= uNear) gl_Position = vec4(2.0, 2.0, 2.0, 1.0);
+  gl_PointSize = 2.0;
+  vColor = aColor;
+}`;
+  const LINE_FS = `#version 300 es
+precision highp float;
+in vec3 vColor; out vec4 outColor;
+void main() { outColor = vec4(vColor, 1.0); }`;
+
+  const MESH_VS = `#version 300 es
+precision highp float;
+uniform mat4 uView; uniform vec4 uIntr; uniform vec2 uSize; uniform float uNear, uFar;
+layout(location = 0) in vec3 aPos; layout(location = 1) in vec3 aColor; out vec3 vColor;
+void main() {
+  vec3 p = (uView * vec4(aPos, 1.0)).xyz;
+  vec2 px = vec2(uIntr.x * p.x, uIntr.y * p.y) + vec2(uIntr.z, uIntr.w) * p.z;
+  // perspective with depth: clip w = z, depth from near..far
+  float zc = (p.z - uNear) / (uFar - uNear) * 2.0 - 1.0;
+  gl_Position = vec4(2.0 * px.x / uSize.x - p.z, p.z - 2.0 * px.y / uSize.y, zc * p.z, p.z);
+  vColor = aColor;
+}`;
+
+  const BLIT_VS = `#version 300 es
+out vec2 vUv;
+void main() {
+  vec2 c = vec2(gl_VertexID & 1, gl_VertexID >> 1);
+  vUv = c;
+  gl_Position = vec4(2.0 * c - 1.0, 0.0, 1.0);
+}`;
+  const BLIT_FS = `#version 300 es
+precision highp float;
+uniform sampler2D uImage; in vec2 vUv; out vec4 outColor;
+void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }`;
+
+  // ---- the viewer --------------------------------------------------------------------------
+  class Viewer {
+    constructor(root, scene) {
+      this.root = root;
+      this.scene = scene;
+      this.canvas = root.querySelector("canvas");
+      const gl = (this.gl = this.canvas.getContext("webgl2", {
+        antialias: false, preserveDrawingBuffer: true, premultipliedAlpha: false,
+      }));
+      if (!gl) throw new Error("this browser has no WebGL2");
+      if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("no float render targets");
+      this.showCameras = true;
+      this.showPoints = true;
+      this.programs = {
+        splat: program(gl, SPLAT_VS, SPLAT_FS),
+        line: program(gl, LINE_VS, LINE_FS),
+        mesh: program(gl, MESH_VS, LINE_FS),
+        blit: program(gl, BLIT_VS, BLIT_FS),
+      };
+      this.vao = gl.createVertexArray();
+      this.emptyVao = gl.createVertexArray();
+      this._loadSplats();
+      this._loadLines();
+      this._loadPoints();
+      this._loadMesh();
+      this.target = this._sceneCentre();
+      this.up = this._sceneUp();
+      this._controls();
+      this.setCamera(this.scene.start || 0);
+    }
+
+    _sceneCentre() {
+      const cams = this.scene.cameras;
+      if (this.scene.centre) return this.scene.centre;
+      const c = [0, 0, 0];
+      for (const cam of cams) for (let k = 0; k < 3; k++) c[k] += cam.centre[k] / cams.length;
+      return c;
+    }
+    _sceneUp() { // minus the cameras' mean y axis (OpenCV y points down in the image)
+      const u = [0, 0, 0];
+      for (const cam of this.scene.cameras) {
+        const m = cam.cam_from_world;
+        for (let k = 0; k < 3; k++) u[k] -= m[4 + k];
+      }
+      return normalize(u);
+    }
+
+    _loadSplats() {
+      const s = this.scene.splats;
+      this.count = s ? s.count : 0;
+      if (!this.count) return;
+      const gl = this.gl;
+      const { means, cov, opacity, sh, intervals } = s.encoding === "compressed" ? decompress(s) : {
+        means: decode(s.means, Float32Array),
+        cov: decode(s.cov, Float32Array),
+        opacity: decode(s.opacity, Float32Array),
+        sh: decode(s.sh, Float32Array),
+        intervals: s.intervals ? decode(s.intervals, Float32Array) : null,
+      };
+      const geom = new Float32Array(this.count * 12);
+      for (let i = 0; i < this.count; i++) {
+        geom.set([means[3 * i], means[3 * i + 1], means[3 * i + 2], opacity[i]], 12 * i);
+        geom.set(cov.subarray(6 * i, 6 * i + 6), 12 * i + 4);
+        if (intervals) geom[12 * i + 10] = intervals[i];
+      }
+      const k = s.sh_bases;
+      const shTex = new Float32Array(this.count * 16 * 4);
+      for (let i = 0; i < this.count; i++)
+        for (let j = 0; j < k; j++)
+          for (let ch = 0; ch < 3; ch++) shTex[4 * (16 * i + j) + ch] = sh[3 * (k * i + j) + ch];
+      this.means = means;
+      this.geomTex = floatTexture(gl, 3 * this.count, geom);
+      this.shTex = floatTexture(gl, 16 * this.count, shTex);
+      this.order = new Uint32Array(this.count);
+      this.indexBuffer = gl.createBuffer();
+    }
+
+    _lineBuffer(positions, colors) {
+      const gl = this.gl, vao = gl.createVertexArray();
+      gl.bindVertexArray(vao);
+      for (const [loc, data] of [[0, positions], [1, colors]]) {
+        const b = gl.createBuffer();
+        gl.bindBuffer(gl.ARRAY_BUFFER, b);
+        gl.bufferData(gl.ARRAY_BUFFER, data, gl.STATIC_DRAW);
+        gl.enableVertexAttribArray(loc);
+        gl.vertexAttribPointer(loc, 3, gl.FLOAT, false, 0, 0);
+      }
+      gl.bindVertexArray(null);
+      return { vao, count: positions.length / 3 };
+    }
+
+    _loadLines() { // a frustum per camera: held-out cameras orange, training cameras blue
+      const pos = [], col = [];
+      const size = this.scene.frustum_size || 0.1;
+      for (const cam of this.scene.cameras) {
+        const w = rigidInverse(cam.cam_from_world);
+        const corners = [[0, 0], [cam.width, 0], [cam.width, cam.height], [0, cam.height]].map(
+          ([u, v]) => {
+            const d = [(u - cam.cx) / cam.fx * size, (v - cam.cy) / cam.fy * size, size];
+            return [0, 1, 2].map((r) => w[4 * r] * d[0] + w[4 * r + 1] * d[1] + w[4 * r + 2] * d[2] + w[4 * r + 3]);
+          });
+        const c = cam.centre, color = cam.split === "test" ? [1, 0.55, 0.1] : [0.2, 0.5, 1];
+        for (let k = 0; k < 4; k++) {
+          pos.push(...c, ...corners[k], ...corners[k], ...corners[(k + 1) % 4]);
+          for (let n = 0; n < 4; n++) col.push(...color);
+        }
+      }
+      this.lines = this._lineBuffer(new Float32Array(pos), new Float32Array(col));
+    }
+
+    _loadPoints() {
+      const p = this.scene.points;
+      if (!p) return;
+      const rgb = decode(p.rgb, Uint8Array), colors = new Float32Array(rgb.length);
+      for (let i = 0; i < rgb.length; i++) colors[i] = rgb[i] / 255;
+      this.points = this._lineBuffer(decode(p.xyz, Float32Array), colors);
+    }
+
+    _loadMesh() {
+      const m = this.scene.mesh;
+      if (!m) return;
+      const gl = this.gl, rgb = decode(m.rgb, Uint8Array), colors = new Float32Array(rgb.length);
+      for (let i = 0; i < rgb.length; i++) colors[i] = rgb[i] / 255;
+      const mesh = this._lineBuffer(decode(m.xyz, Float32Array), colors);
+      gl.bindVertexArray(mesh.vao);
+      const faces = decode(m.faces, Uint32Array), ib = gl.createBuffer();
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, faces, gl.STATIC_DRAW);
+      gl.bindVertexArray(null);
+      this.mesh = { vao: mesh.vao, count: faces.length };
+    }
+
+    // the view: cam_from_world (row-major, OpenCV), intrinsics and size in pixels
+    setCamera(i) {
+      const cam = this.scene.cameras[i];
+      this.current = i;
+      this.view = {
+        cam_from_world: Float64Array.from(cam.cam_from_world),
+        fx: cam.fx, fy: cam.fy, cx: cam.cx, cy: cam.cy, width: cam.width, height: cam.height,
+      };
+      this._resize(cam.width, cam.height);
+      const photo = this.root.querySelector(".recon-photo");
+      if (photo && cam.image) photo.src = (this.root.dataset.root || "") + cam.image;
+      if (photo) photo.style.display = cam.image ? "" : "none";
+      const label = this.root.querySelector(".recon-label");
+      if (label) label.textContent = `${cam.split} camera ${cam.name}`;
+      this.render();
+    }
+
+    // the current view at another size, the same field of view (the benchmark's 1280 x 720)
+    setSize(width, height) {
+      const v = this.view, sx = width / v.width, sy = height / v.height;
+      Object.assign(v, { fx: v.fx * sx, fy: v.fy * sy, cx: v.cx * sx, cy: v.cy * sy, width, height });
+      this._resize(width, height);
+      this.render();
+    }
+
+    _resize(width, height) {
+      const gl = this.gl;
+      this.canvas.width = width;
+      this.canvas.height = height;
+      if (this.fbo) {
+        gl.deleteFramebuffer(this.fbo);
+        gl.deleteTexture(this.target_tex);
+        gl.deleteRenderbuffer(this.depth);
+      }
+      this.target_tex = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, this.target_tex);
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, width, height, 0, gl.RGBA, gl.FLOAT, null);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+        gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+      this.depth = gl.createRenderbuffer();
+      gl.bindRenderbuffer(gl.RENDERBUFFER, this.depth);
+      gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_COMPONENT24, width, height);
+      this.fbo = gl.createFramebuffer();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.target_tex, 0);
+      gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.RENDERBUFFER, this.depth);
+    }
+
+    // Back to front: a stable LSD radix sort of the depths along the optical axis (their float
+    // bits, 8 at a time), read in reverse. recon's rasterizer sorts front to back, stable, so
+    // splats at equal depth meet in the same order.
+    _sort(view) {
+      const m = view.cam_from_world, means = this.means, n = this.count;
+      const keys = this.sortKeys || (this.sortKeys = new Uint32Array(n));
+      const depth = new Float32Array(keys.buffer);
+      for (let i = 0; i < n; i++) {
+        const z = m[8] * means[3 * i] + m[9] * means[3 * i + 1] + m[10] * means[3 * i + 2] + m[11];
+        depth[i] = z > 0 ? z : 0;  // behind the camera: culled by the shader anyway
+      }
+      let src = this.sortA || (this.sortA = new Uint32Array(n));
+      let dst = this.sortB || (this.sortB = new Uint32Array(n));
+      for (let i = 0; i < n; i++) src[i] = i;
+      const counts = new Uint32Array(256);
+      for (let shift = 0; shift < 32; shift += 8) {
+        counts.fill(0);
+        for (let i = 0; i < n; i++) counts[(keys[src[i]] >>> shift) & 255]++;
+        for (let b = 0, sum = 0; b < 256; b++) { const c = counts[b]; counts[b] = sum; sum += c; }
+        for (let i = 0; i < n; i++) { const j = src[i]; dst[counts[(keys[j] >>> shift) & 255]++] = j; }
+        [src, dst] = [dst, src];
+      }
+      for (let i = 0; i < n; i++) this.order[i] = src[n - 1 - i];
+      const gl = this.gl;
+      gl.bindVertexArray(this.vao);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.indexBuffer);
+      gl.bufferData(gl.ARRAY_BUFFER, this.order, gl.DYNAMIC_DRAW);
+      gl.enableVertexAttribArray(0);
+      gl.vertexAttribIPointer(0, 1, gl.UNSIGNED_INT, 0, 0);
+      gl.vertexAttribDivisor(0, 1);
+      gl.bindVertexArray(null);
+    }
+
+    _uniforms(p, view) {
+      const gl = this.gl, m = view.cam_from_world;
+      const colMajor = new Float32Array(16);
+      for (let i = 0; i < 4; i++) for (let j = 0; j < 4; j++) colMajor[4 * j + i] = m[4 * i + j];
+      gl.uniformMatrix4fv(gl.getUniformLocation(p, "uView"), false, colMajor);
+      gl.uniform4f(gl.getUniformLocation(p, "uIntr"), view.fx, view.fy, view.cx, view.cy);
+      gl.uniform2f(gl.getUniformLocation(p, "uSize"), view.width, view.height);
+      gl.uniform1f(gl.getUniformLocation(p, "uNear"), this.scene.near || 0.01);
+    }
+
+    render() {
+      const gl = this.gl, view = this.view, s = this.scene;
+      const t0 = performance.now();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+      gl.viewport(0, 0, view.width, view.height);
+      const bg = s.background || [0, 0, 0];
+      gl.clearColor(bg[0], bg[1], bg[2], 1);
+      gl.clearDepth(1);
+      gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+      if (this.mesh) {
+        const p = this.programs.mesh;
+        gl.useProgram(p);
+        this._uniforms(p, view);
+        gl.uniform1f(gl.getUniformLocation(p, "uFar"), s.far || 100);
+        gl.enable(gl.DEPTH_TEST);
+        gl.bindVertexArray(this.mesh.vao);
+        gl.drawElements(gl.TRIANGLES, this.mesh.count, gl.UNSIGNED_INT, 0);
+        gl.disable(gl.DEPTH_TEST);
+      }
+      if (this.count) {
+        this._sort(view);
+        const p = this.programs.splat;
+        gl.useProgram(p);
+        this._uniforms(p, view);
+        const c = this._centre(view);
+        gl.uniform3f(gl.getUniformLocation(p, "uCenter"), c[0], c[1], c[2]);
+        gl.uniform1i(gl.getUniformLocation(p, "uDegree"), s.splats.sh_degree);
+        gl.uniform1i(gl.getUniformLocation(p, "uAntialiased"), s.splats.antialiased ? 1 : 0);
+        gl.uniform1i(gl.getUniformLocation(p, "uFootprint"), s.splats.intervals ? 1 : 0);
+        const tile = view.width * view.height >= LARGE_IMAGE ? TILE_LARGE : TILE;
+        gl.uniform1i(gl.getUniformLocation(p, "uTile"), tile);
+        gl.activeTexture(gl.TEXTURE0);
+        gl.bindTexture(gl.TEXTURE_2D, this.geomTex);
+        gl.uniform1i(gl.getUniformLocation(p, "uGeom"), 0);
+        gl.activeTexture(gl.TEXTURE1);
+        gl.bindTexture(gl.TEXTURE_2D, this.shTex);
+        gl.uniform1i(gl.getUniformLocation(p, "uSh"), 1);
+        gl.enable(gl.BLEND);
+        gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
+        gl.bindVertexArray(this.vao);
+        gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.count);
+        gl.disable(gl.BLEND);
+      }
+      const p = this.programs.line;
+      gl.useProgram(p);
+      this._uniforms(p, view);
+      if (this.showPoints && this.points) {
+        gl.bindVertexArray(this.points.vao);
+        gl.drawArrays(gl.POINTS, 0, this.points.count);
+      }
+      if (this.showCameras) {
+        gl.bindVertexArray(this.lines.vao);
+        gl.drawArrays(gl.LINES, 0, this.lines.count);
+      }
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.viewport(0, 0, view.width, view.height);
+      gl.useProgram(this.programs.blit);
+      gl.activeTexture(gl.TEXTURE0);
+      gl.bindTexture(gl.TEXTURE_2D, this.target_tex);
+      gl.uniform1i(gl.getUniformLocation(this.programs.blit, "uImage"), 0);
+      gl.bindVertexArray(this.emptyVao);
+      gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+      gl.bindVertexArray(null);
+      gl.finish();
+      this.frameMs = performance.now() - t0;
+    }
+
+    _centre(view) {
+      const w = rigidInverse(view.cam_from_world);
+      return [w[3], w[7], w[11]];
+    }
+
+    // ---- orbit (left drag), pan (right or shift drag), zoom (wheel), reset -------------------
+    _controls() {
+      const c = this.canvas;
+      let last = null, panning = false;
+      c.addEventListener("contextmenu", (e) => e.preventDefault());
+      c.addEventListener("pointerdown", (e) => {
+        last = [e.clientX, e.clientY];
+        panning = e.button === 2 || e.shiftKey;
+        c.setPointerCapture(e.pointerId);
+      });
+      c.addEventListener("pointerup", () => (last = null));
+      c.addEventListener("pointermove", (e) => {
+        if (!last) return;
+        const dx = e.clientX - last[0], dy = e.clientY - last[1];
+        last = [e.clientX, e.clientY];
+        if (panning) this.pan(dx, dy);
+        else this.orbit(-dx * 0.005, -dy * 0.005);
+      });
+      c.addEventListener("wheel", (e) => {
+        e.preventDefault();
+        this.zoom(Math.exp(e.deltaY * 0.001));
+      }, { passive: false });
+    }
+
+    _moveWorld(worldFromWorld) { // the camera moved by a world transform T: cam_from_world T^-1
+      this.view.cam_from_world = matmul(this.view.cam_from_world, rigidInverse(worldFromWorld));
+      this.render();
+    }
+    orbit(yaw, pitch) {
+      const t = this.target, right = this._axis(0);
+      const about = (axis, angle) => matmul(translation(t), matmul(rotation(axis, angle), translation(t.map((x) => -x))));
+      this._moveWorld(matmul(about(right, pitch), about(this.up, yaw)));
+    }
+    pan(dx, dy) {
+      const dist = this._distance(), f = this.view.fx;
+      const r = this._axis(0), d = this._axis(1);
+      const v = [0, 1, 2].map((k) => (-dx * r[k] - dy * d[k]) * dist / f);
+      this.target = this.target.map((x, k) => x + v[k]);
+      this._moveWorld(translation(v));
+    }
+    zoom(factor) {
+      const c = this._centre(this.view), t = this.target;
+      const v = [0, 1, 2].map((k) => (c[k] - t[k]) * (factor - 1));
+      this._moveWorld(translation(v));
+    }
+    _axis(row) { // the camera's x (0) or y (1) axis in the world
+      const m = this.view.cam_from_world;
+      return [m[4 * row], m[4 * row + 1], m[4 * row + 2]];
+    }
+    _distance() {
+      const c = this._centre(this.view);
+      return Math.hypot(c[0] - this.target[0], c[1] - this.target[1], c[2] - this.target[2]);
+    }
+
+    // the canvas as a PNG data URL (the browser test compares it with `recon render`)
+    snapshot() { return this.canvas.toDataURL("image/png"); }
+  }
+
+  function build(root) {
+    const scene = (window.RECON_VIEWS || {})[root.dataset.view];
+    const status = root.querySelector(".recon-status");
+    try {
+      if (!scene) throw new Error(`no scene ${root.dataset.view} (its script did not load)`);
+      const viewer = new Viewer(root, scene);
+      const list = root.querySelector(".recon-cameras");
+      scene.cameras.forEach((cam, i) => {
+        const o = document.createElement("option");
+        o.value = i;
+        o.textContent = `${cam.split} ${cam.name}`;
+        list.appendChild(o);
+      });
+      list.value = viewer.current;
+      list.addEventListener("change", () => viewer.setCamera(Number(list.value)));
+      root.querySelector(".recon-reset").addEventListener("click", () => {
+        viewer.target = viewer._sceneCentre();
+        viewer.setCamera(Number(list.value));
+      });
+      for (const [cls, key] of [[".recon-show-cameras", "showCameras"], [".recon-show-points", "showPoints"]]) {
+        const box = root.querySelector(cls);
+        if (!box) continue;
+        box.checked = viewer[key];
+        box.addEventListener("change", () => { viewer[key] = box.checked; viewer.render(); });
+      }
+      status.textContent = `${viewer.count ? viewer.count + " Gaussians" : "mesh"}, ` +
+        `${scene.cameras.length} cameras; drag to orbit, right-drag to pan, wheel to zoom`;
+      return viewer;
+    } catch (e) {
+      status.textContent = `3D view unavailable: ${e.message}`;
+      return null;
+    }
+  }
+
+  window.reconViewers = {};
+  function start() {
+    for (const root of document.querySelectorAll(".recon-viewer"))
+      window.reconViewers[root.dataset.view] = build(root);
+    window.reconViewersReadyMs = performance.now();  // since the page began to load
+    window.reconViewersReady = true;
+  }
+  if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", start);
+  else start();
+})();

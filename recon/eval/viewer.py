@@ -1,0 +1,261 @@
+"""The 3D view of a run in report.html: recon's own WebGL2 viewer (`viewer.js`, beside this
+file) and each run's scene as a script it reads, both written into the workspace's `viewer/`
+folder so the page works from a double-click (file:// cannot fetch, but it runs scripts) and
+from any static web server alike.
+
+A run's scene: every camera (held-out ones first; the view opens at the first), the sfm
+points, and the model: a 3dgs run's Gaussians as its renderer draws them (3D covariance,
+opacity, SH up to the degree it reached, the per-view terms its renderer applies), any other
+method's mesh from `recon mesh` when there is one. Arrays travel as base64 of little-endian
+float32 / uint8 / uint32.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from recon.cameras import Cameras
+from recon.gaussians.projection import covariance_3d
+from recon.gaussians.splat_formats import compress_splats
+from recon.workspace import Workspace, atomic_write_text
+from recon.workspace.runs import load_run
+
+VIEWER_JS = Path(__file__).with_name("viewer.js")
+# Up to this many Gaussians travel as float32 (~240 bytes each at SH degree 3, ~320 in base64),
+# drawn exactly as recon renders them; more, in the compressed PLY's layout (PlayCanvas: 16
+# bytes + 1 per SH coefficient and channel, 61 at degree 3, ~81 in base64; quantised to 11/10
+# bits a chunk of 256 Gaussians), without the footprint filter's per-Gaussian intervals.
+EXACT_GAUSSIANS = 60_000
+MAX_GAUSSIANS = 600_000  # the most visible (opacity times volume) of a run that has more
+MAX_POINTS = 100_000  # sfm points shown (an even subsample of more)
+MAX_FACES = 300_000  # mesh faces shown (a mesh with more is left out, with a note)
+
+
+def b64(array: np.ndarray, dtype) -> str:
+    return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
+
+
+def camera_entry(camera: Cameras, name: str, split: str, image: str = "") -> dict:
+    """One camera (`Cameras` of length 1) as the viewer takes it: cam_from_world row-major
+    (16,), intrinsics in pixels, its centre, and the photo's href (or "")."""
+    cam = camera.to(dtype=torch.float64)
+    K = cam.K[0]
+    return {
+        "name": name,
+        "split": split,
+        "width": int(cam.width[0]),
+        "height": int(cam.height[0]),
+        "fx": float(K[0, 0]),
+        "fy": float(K[1, 1]),
+        "cx": float(K[0, 2]),
+        "cy": float(K[1, 2]),
+        "cam_from_world": cam.cam_from_world[0].reshape(-1).tolist(),
+        "centre": cam.world_from_cam[0, :3, 3].tolist(),
+        "image": image,
+    }
+
+
+def camera_entries(ws: Workspace, scene, level: int, page_dir: Path) -> list[dict]:
+    """Held-out cameras first, then training ones, at pyramid level `level` (the size the run
+    renders at), with their photos relative to the page."""
+    order = scene.split("test") + scene.split("val") + scene.split("train")
+    cams = scene.cameras(order, downscale=level)
+    out = []
+    for n, i in enumerate(order):
+        frame = scene.frames[i]
+        photo = ws.root / frame["image"]
+        href = Path(os.path.relpath(photo, page_dir)).as_posix() if photo.exists() else ""
+        out.append(camera_entry(cams[n], frame["name"], frame["split"], href))
+    return out
+
+
+def splat_entry(splats: dict, terms: dict, exact_max: int = EXACT_GAUSSIANS) -> dict:
+    """Gaussians in `Model.splats()`'s form, drawn as `terms` (`Model.splat_rendering`) say:
+    up to `exact_max` as float32 means, upper triangles of the 3D covariances, opacities, SH up
+    to the degree reached and the footprint filter's sampling intervals; more, compressed
+    (`splat_formats.compress_splats`)."""
+    g = splats
+    count = len(g["means"])
+    keep = np.arange(count)
+    if count > MAX_GAUSSIANS:  # the most visible: opacity times volume
+        opacity = 1 / (1 + np.exp(-g["opacity_logits"].astype(np.float64)))
+        weight = opacity * np.exp(g["log_scales"].astype(np.float64).sum(1))
+        keep = np.sort(np.argsort(-weight, kind="stable")[:MAX_GAUSSIANS])
+    degree = terms["sh_degree"]
+    k = (degree + 1) ** 2
+    entry = {
+        "count": len(keep),
+        "of": int(count),
+        "sh_bases": k,
+        "sh_degree": degree,
+        "antialiased": bool(terms["antialiased"]),
+    }
+    if len(keep) > exact_max:
+        c = compress_splats(
+            g["means"][keep], g["quats"][keep], g["log_scales"][keep],
+            g["opacity_logits"][keep], g["sh"][keep, :k],
+        )  # fmt: skip
+        entry.update(
+            encoding="compressed",
+            chunks=b64(c["chunks"], "<f4"),
+            packed=b64(c["packed"], "<u4"),
+            sh_rest=b64(c["sh_rest"], "u1"),
+        )
+        return entry
+    cov = covariance_3d(
+        torch.from_numpy(g["quats"][keep]).double(),
+        torch.from_numpy(g["log_scales"][keep]).double(),
+    ).numpy()
+    upper = cov[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]  # xx xy xz yy yz zz
+    entry.update(
+        encoding="float32",
+        means=b64(g["means"][keep], "<f4"),
+        cov=b64(upper, "<f4"),
+        opacity=b64(1 / (1 + np.exp(-g["opacity_logits"][keep].astype(np.float64))), "<f4"),
+        sh=b64(g["sh"][keep, :k], "<f4"),
+    )
+    if terms.get("intervals") is not None:
+        entry["intervals"] = b64(terms["intervals"][keep], "<f4")
+    return entry
+
+
+def points_entry(scene) -> dict | None:
+    points, colors = scene.info.points, scene.info.point_colors
+    if points is None or len(points) == 0:
+        return None
+    p = points.numpy()
+    c = colors.numpy() if colors is not None else np.full_like(p, 200, dtype=np.uint8)
+    step = max(1, len(p) // MAX_POINTS)
+    return {"xyz": b64(p[::step], "<f4"), "rgb": b64(c[::step], "u1")}
+
+
+def mesh_entry(ws: Workspace, run: str, scene) -> dict | None:
+    """The run's mesh (`recon mesh`, original units) in the normalized frame, with vertex
+    colours (grey where it has none)."""
+    import trimesh
+
+    paths = [ws.mesh_dir(run) / f"mesh.{ext}" for ext in ("ply", "glb", "obj")]
+    path = next((p for p in paths if p.exists()), None)
+    if path is None:
+        return None
+    mesh = trimesh.load(str(path), process=False, force="mesh")
+    faces = np.asarray(mesh.faces)
+    if len(faces) == 0 or len(faces) > MAX_FACES:
+        return None
+    xyz = scene.scene_from_world.apply(np.asarray(mesh.vertices, np.float64))
+    colors = getattr(mesh.visual, "vertex_colors", None)
+    rgb = (
+        np.asarray(colors)[:, :3]
+        if colors is not None and len(colors) == len(xyz)
+        else np.full((len(xyz), 3), 180, np.uint8)
+    )
+    return {"xyz": b64(xyz, "<f4"), "rgb": b64(rgb, "u1"), "faces": b64(faces, "<u4")}
+
+
+def viewer_scene(ws: Workspace, run: str, page_dir: Path) -> dict:
+    """Everything the viewer draws for `run` (see the module docstring)."""
+    from recon.train.resolution import output_levels
+
+    model, scene, run_doc = load_run(ws, run, "cpu")
+    level = output_levels(scene, run_doc)[1]
+    doc = {
+        "run": run,
+        "method": run_doc.get("method", ""),
+        "cameras": camera_entries(ws, scene, level, page_dir),
+        "points": points_entry(scene),
+        "background": [float(x) for x in scene.info.background],
+        "near": 0.01,
+        "far": float(scene.info.far) if np.isfinite(scene.info.far) else 100.0,
+        "centre": scene.info.aabb.double().mean(0).tolist(),
+        "frustum_size": 0.05 * float((scene.info.aabb[1] - scene.info.aabb[0]).norm()),
+    }
+    if model.exports_splats:
+        terms = model.splat_rendering()
+        doc["splats"] = splat_entry(model.splats(), terms)
+        doc["background"], doc["near"] = terms["background"], terms["near"]
+    else:
+        doc["mesh"] = mesh_entry(ws, run, scene)
+    return doc
+
+
+def write_scene_script(folder: Path, name: str, doc: dict) -> Path:
+    """folder/viewer.js (the viewer) and folder/<name>.js (the scene `doc`) -> the latter."""
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(VIEWER_JS, folder / "viewer.js")
+    script = folder / f"{name}.js"
+    atomic_write_text(
+        script,
+        "window.RECON_VIEWS = window.RECON_VIEWS || {};\n"
+        f"window.RECON_VIEWS[{json.dumps(name)}] = {json.dumps(doc, separators=(',', ':'))};\n",
+    )
+    return script
+
+
+def viewer_html(name: str, scene_src: str, root: str = "") -> str:
+    """The block a page shows the scene `name` in (its script at `scene_src`; the photos'
+    hrefs, relative to the workspace, prefixed with `root`); the page loads viewer.js once,
+    after every block."""
+    label = html.escape(name)
+    return (
+        f'<div class="recon-viewer" data-view="{label}" data-root="{html.escape(root)}">'
+        '<div class="bar">'
+        '<select class="recon-cameras" title="fly to a camera"></select> '
+        '<button class="recon-reset">Reset</button> '
+        '<label><input type="checkbox" class="recon-show-cameras"> cameras</label> '
+        '<label><input type="checkbox" class="recon-show-points"> sfm points</label> '
+        '<span class="recon-label"></span> <span class="recon-status">loading the 3D view…</span>'
+        '</div><canvas></canvas><img class="recon-photo" alt="the camera\'s photo"></div>'
+        f'<script src="{html.escape(scene_src)}"></script>'
+    )
+
+
+PAGE_STYLE = (
+    "body { font-family: system-ui, sans-serif; margin: 1em; background: #111; color: #ddd; }"
+    " canvas { max-width: 100%; border: 1px solid #444; cursor: grab; touch-action: none; }"
+    " .recon-photo { width: 320px; vertical-align: top; margin-left: 8px; }"
+)
+
+
+def write_page(
+    folder: Path, name: str, doc: dict, page: str = "index.html", root: str = ""
+) -> Path:
+    """A page of its own for the scene `doc`: folder/`page` beside its scripts (`root`: the
+    workspace relative to the page, for the photos)."""
+    script = write_scene_script(folder, name, doc)
+    path = folder / page
+    atomic_write_text(
+        path,
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>recon: {html.escape(name)}</title><style>{PAGE_STYLE}</style></head><body>"
+        f'{viewer_html(name, script.name, root)}<script src="viewer.js"></script></body></html>\n',
+    )
+    return path
+
+
+def write_viewer(ws: Workspace, run: str) -> Path:
+    """viewer/viewer.js and viewer/<run>.js beside report.html -> the scene script's path."""
+    folder = ws.report_html.parent / "viewer"
+    return write_scene_script(folder, run, viewer_scene(ws, run, ws.report_html.parent))
+
+
+def run_page(ws: Workspace, run: str) -> Path:
+    """WS/viewer/<run>.html, the run's 3D view on a page of its own (`recon view --run`); its
+    scene is written again when the model is newer than it."""
+    folder = ws.report_html.parent / "viewer"
+    script = folder / f"{run}.js"
+    model = ws.model_path(run)
+    page = folder / f"{run}.html"
+    if not model.exists():  # load_run says why (no such run, or not trained yet)
+        load_run(ws, run, "cpu")
+    if script.exists() and page.exists() and script.stat().st_mtime >= model.stat().st_mtime:
+        return page
+    doc = viewer_scene(ws, run, ws.report_html.parent)
+    return write_page(folder, run, doc, page=f"{run}.html", root="../")

@@ -1,0 +1,162 @@
+"""The report's WebGL viewer (`recon/eval/viewer.js`) against recon's own splat renderer: the
+same Gaussians and camera drawn in headless chromium (software WebGL) and by
+`recon.gaussians.render` must agree pixel for pixel up to 8-bit rounding. Skipped, with the
+reason, where chromium is missing (`make browser`)."""
+
+import base64
+import io
+import time
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from recon.cameras import Cameras
+from recon.cameras.look_at import look_at
+from recon.eval.viewer import camera_entry, splat_entry, write_page
+from recon.gaussians.footprint import with_training_footprint
+from recon.gaussians.render import composite_rgbd, project_splats
+from recon.metrics.image import psnr
+from tests.browser import chromium_driver, console_errors
+
+
+def random_gaussians(n: int, seed: int = 0) -> dict:
+    """`Model.splats()`-shaped Gaussians in a unit box, degree-3 SH."""
+    rng = np.random.default_rng(seed)
+    return {
+        "means": rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
+        "quats": rng.normal(size=(n, 4)).astype(np.float32),
+        "log_scales": np.log(rng.uniform(0.005, 0.08, (n, 3))).astype(np.float32),
+        "opacity_logits": rng.normal(0.0, 2.0, n).astype(np.float32),
+        "sh": rng.normal(0.0, 0.4, (n, 16, 3)).astype(np.float32),
+    }
+
+
+def view_camera(width: int, height: int) -> Cameras:
+    eye = torch.tensor([[1.4, -1.1, 0.7]])
+    cam_from_world = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    f = 0.9 * width
+    K = torch.tensor([[[f, 0.0, width / 2 + 3.0], [0.0, f, height / 2 - 2.0], [0.0, 0.0, 1.0]]])
+    return Cameras(K, cam_from_world, torch.tensor([width]), torch.tensor([height]))
+
+
+def recon_render(g: dict, camera: Cameras, terms: dict) -> np.ndarray:
+    """What `GaussianModel.render` draws for these Gaussians: (H, W, 3) in [0, 1]."""
+    gaussians = {k: torch.from_numpy(g[k]) for k in ("means", "quats", "log_scales")}
+    gaussians["opacity_logits"] = torch.from_numpy(g["opacity_logits"])
+    gaussians["sh_dc"] = torch.from_numpy(g["sh"][:, :1])
+    gaussians["sh_rest"] = torch.from_numpy(g["sh"][:, 1:])
+    with torch.no_grad():
+        splats = project_splats(
+            gaussians, camera, terms["sh_degree"], terms["near"], terms["antialiased"]
+        )
+        if terms["intervals"] is not None:
+            intervals = torch.from_numpy(terms["intervals"])
+            focal = float(camera.K[0, 0, 0])
+            splats = with_training_footprint(splats, intervals, focal, terms["antialiased"])
+        out = composite_rgbd(splats, torch.tensor(terms["background"]))
+    return out["rgb"].clamp(0, 1).numpy()
+
+
+def browser_render(folder, doc: dict) -> tuple[np.ndarray, dict]:
+    """The viewer's image of `doc`'s first camera (cameras and points hidden) -> (H, W, 3) in
+    [0, 1] and what the page said (console errors, status line, load time)."""
+    page = write_page(folder, "scene", doc)
+    with chromium_driver(webgl=True) as driver:
+        driver.get(page.as_uri())
+        deadline = time.time() + 20
+        while not driver.execute_script("return window.reconViewersReady === true"):
+            assert time.time() < deadline, "the viewer never started"
+            time.sleep(0.05)
+        status = driver.execute_script("return document.querySelector('.recon-status').textContent")
+        url = driver.execute_script(
+            "const v = window.reconViewers.scene; if (!v) return null;"
+            "v.showCameras = false; v.showPoints = false; v.setCamera(0); return v.snapshot();"
+        )
+        seen = {
+            "errors": console_errors(driver),
+            "status": status,
+            "ready_ms": driver.execute_script("return window.reconViewersReadyMs"),
+        }
+    assert url is not None, seen
+    png = base64.b64decode(url.split(",", 1)[1])
+    image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float32) / 255
+    return image, seen
+
+
+@pytest.mark.parametrize(
+    ("size", "degree", "antialiased", "footprint"),
+    [
+        ((96, 72), 3, False, False),  # 16 px tiles, every SH band
+        ((96, 72), 1, True, True),  # the antialiasing compensation, the footprint filter
+        ((480, 400), 2, False, False),  # 32 px tiles (images of 384^2 pixels or more)
+    ],
+)
+def test_the_viewer_draws_what_recon_renders(tmp_path, size, degree, antialiased, footprint):
+    g = random_gaussians(400)
+    camera = view_camera(*size)
+    intervals = None
+    if footprint:  # finer than some Gaussians' training views: their dilation grows
+        intervals = np.random.default_rng(1).uniform(0.0, 0.02, 400).astype(np.float32)
+    terms = {
+        "sh_degree": degree,
+        "antialiased": antialiased,
+        "background": [0.9, 0.8, 0.2],
+        "near": 0.01,
+        "intervals": intervals,
+    }
+    doc = {
+        "cameras": [camera_entry(camera, "view", "test")],
+        "splats": splat_entry(g, terms),
+        "background": terms["background"],
+        "near": terms["near"],
+        "centre": [0.0, 0.0, 0.0],
+        "frustum_size": 0.1,
+    }
+    expected = recon_render(g, camera, terms)
+    seen_image, seen = browser_render(tmp_path / "page", doc)
+    assert seen["errors"] == [], seen
+    assert seen_image.shape == expected.shape
+    value = float(psnr(torch.from_numpy(seen_image), torch.from_numpy(expected)))
+    assert value >= 40.0, (value, seen)
+
+
+def test_compressed_gaussians_are_drawn_as_they_decode(tmp_path):
+    """A large run travels in the compressed PLY's layout: the viewer's decoding (in JS) and
+    `read_compressed_ply`'s (in numpy) give the same Gaussians, so the same image."""
+    from recon.gaussians.splat_formats import read_compressed_ply, write_compressed_ply
+
+    g = random_gaussians(600, seed=3)
+    camera = view_camera(96, 72)
+    terms = {"sh_degree": 3, "antialiased": False, "background": [0.1, 0.2, 0.3], "near": 0.01,
+             "intervals": None}  # fmt: skip
+    entry = splat_entry(g, terms, exact_max=0)
+    assert entry["encoding"] == "compressed" and "means" not in entry
+    write_compressed_ply(tmp_path / "g.ply", g["means"], g["quats"], g["log_scales"],
+                         g["opacity_logits"], g["sh"])  # fmt: skip
+    decoded = read_compressed_ply(tmp_path / "g.ply")
+    doc = {
+        "cameras": [camera_entry(camera, "view", "test")],
+        "splats": entry,
+        "background": terms["background"],
+        "near": 0.01,
+        "centre": [0.0, 0.0, 0.0],
+        "frustum_size": 0.1,
+    }
+    seen_image, seen = browser_render(tmp_path / "page", doc)
+    expected = recon_render(decoded, camera, terms)
+    assert seen["errors"] == [], seen
+    value = float(psnr(torch.from_numpy(seen_image), torch.from_numpy(expected)))
+    assert value >= 40.0, value
+
+
+def test_a_page_without_its_scene_says_so(tmp_path):
+    page = write_page(tmp_path / "page", "scene", {"cameras": []})
+    (tmp_path / "page" / "scene.js").unlink()
+    with chromium_driver(webgl=True) as driver:
+        driver.get(page.as_uri())
+        status = driver.execute_script("return document.querySelector('.recon-status').textContent")
+        errors = console_errors(driver)
+    assert status.startswith("3D view unavailable: no scene scene")
+    assert all("scene.js" in e for e in errors)  # the missing file, nothing else
