@@ -5,7 +5,7 @@ second in headless chromium on its software WebGL (SwiftShader: the CPU, no GPU)
 
 Writes the run's page (`recon view --run`'s WS/viewer/RUN.html), loads it, then renders
 `--frames` frames at `--size` while orbiting the held-out camera a little each frame (every
-frame re-sorts the splats, as an interactive orbit does) and writes
+frame re-sorts the splats, as an interactive orbit does; a pixel read back ends each frame) and writes
 bench/results/<date>-viewer-<workspace>-<run>.json and .md. Needs chromium and chromedriver
 (`make browser`).
 """
@@ -35,18 +35,28 @@ def measure(page: Path, run: str, width: int, height: int, frames: int) -> dict:
 
     with chromium_driver(webgl=True) as driver:
         start = time.perf_counter()
-        driver.get(page.as_uri())
+        driver.get(page.resolve().as_uri())
         while not driver.execute_script("return window.reconViewersReady === true"):
             if time.perf_counter() - start > 300:
                 raise RuntimeError("the viewer did not start within 5 minutes")
             time.sleep(0.05)
         load_ms = driver.execute_script("return window.reconViewersReadyMs")
+        # the first frame, drawn: a pixel read back after the load
+        first_ms = driver.execute_script(
+            "const v = Object.values(window.reconViewers)[0]; if (!v) return null;"
+            "const px = new Uint8Array(4); v.gl.readPixels(0, 0, 1, 1, v.gl.RGBA, v.gl.UNSIGNED_BYTE, px);"
+            "return performance.now();"
+        )
+        driver.set_script_timeout(1800)
         times = driver.execute_script(
             f"const v = window.reconViewers[{json.dumps(run)}];"
             "if (!v) return null;"
-            f"v.setCamera(0); v.setSize({width}, {height}); const t = [];"
+            f"v.setCamera(0); v.setSize({width}, {height}); const t = [], px = new Uint8Array(4);"
             f"for (let i = 0; i < {frames}; i++) {{"
-            "  const t0 = performance.now(); v.orbit(0.01, 0.0); t.push(performance.now() - t0); }"
+            "  const t0 = performance.now(); v.orbit(0.01, 0.0);"
+            # reading a pixel back waits for the frame to be drawn (finish() need not)
+            "  v.gl.readPixels(0, 0, 1, 1, v.gl.RGBA, v.gl.UNSIGNED_BYTE, px);"
+            "  t.push(performance.now() - t0); }"
             "return t;"
         )
         status = driver.execute_script("return document.querySelector('.recon-status').textContent")
@@ -57,6 +67,7 @@ def measure(page: Path, run: str, width: int, height: int, frames: int) -> dict:
     median = times[len(times) // 2]
     return {
         "load_ms": round(load_ms, 1),
+        "first_frame_drawn_ms": round(first_ms, 1) if first_ms is not None else None,
         "frame_ms_median": round(median, 2),
         "fps": round(1000 / median, 2),
         "frames": frames,
@@ -70,14 +81,14 @@ def measure(page: Path, run: str, width: int, height: int, frames: int) -> dict:
 @click.option("-w", "--workspace", required=True, type=click.Path(file_okay=False))
 @click.option("--run", required=True)
 @click.option("--size", default="1280x720", show_default=True)
-@click.option("--frames", default=20, show_default=True)
+@click.option("--frames", default=5, show_default=True)
 @click.option("--out-dir", default=str(ROOT / "bench" / "results"), show_default=True)
 def main(workspace, run, size, frames, out_dir):
     ws = Workspace.open(workspace)
     width, height = (int(x) for x in size.split("x"))
     page = run_page(ws, run)
     script = page.parent / f"{run}.js"
-    doc = json.loads(script.read_text().split(" = ", 1)[1].rstrip().rstrip(";"))
+    doc = json.loads(script.read_text().splitlines()[1].split(" = ", 1)[1].rstrip(";"))
     count = doc["splats"]["count"] if "splats" in doc else 0
     result = {
         "workspace": str(ws.root),
@@ -102,7 +113,8 @@ def main(workspace, run, size, frames, out_dir):
         "| Gaussians shown (of) | scene file | bytes a Gaussian | load | frame at "
         f"{width}x{height} (median of {frames}) | fps |\n|---|---|---|---|---|---|\n"
         f"| {count:,} ({result['gaussians']:,}) | {result['scene_bytes'] / 1e6:.1f} MB | "
-        f"{result['bytes_per_gaussian']} | {result['load_ms'] / 1000:.2f} s | "
+        f"{result['bytes_per_gaussian']} | {result['load_ms'] / 1000:.2f} s (first frame drawn "
+        f"{result['first_frame_drawn_ms'] / 1000:.1f} s) | "
         f"{result['frame_ms_median']:.0f} ms | {result['fps']:.1f} |\n",
     )
     click.echo(json.dumps(result, indent=2))

@@ -176,13 +176,19 @@ void main() {
     float kept = 1.0 - dil * (A + C) + dil * dil * (A * C - B * B);  // det Sigma / det Sigma'
     opacity *= sqrt(clamp(kept, 1e-12, 1.0));
   }
-  // the pixels of every tile the 3-sigma box touches (the rasterizer's candidates)
+  // the pixels of every tile the 3-sigma box touches (the rasterizer's candidates), within
+  // the box around the ellipse where alpha can reach 1/255 (d^T Sigma'^-1 d <= 2 ln(255 o):
+  // half sides sqrt(q a), sqrt(q c)); outside it every fragment would be discarded anyway
+  if (opacity * 255.0 <= 1.0) return;
   vec2 grid = ceil(uSize / float(uTile));
   vec2 lo = min(max(floor((mean - r) / float(uTile)), 0.0), grid);
   vec2 hi = min(max(floor((mean + r) / float(uTile)), -1.0) + 1.0, grid);
   if (any(lessThanEqual(hi, lo))) return;
+  vec2 reach = sqrt(2.0 * log(255.0 * opacity) * vec2(a, c)) * 1.001 + 0.01;
+  vec2 from = max(lo * float(uTile), mean - reach), to = min(hi * float(uTile), mean + reach);
+  if (any(lessThanEqual(to, from))) return;
   vec2 corner = vec2(gl_VertexID & 1, gl_VertexID >> 1);
-  vec2 pixel = mix(lo, hi, corner) * float(uTile);
+  vec2 pixel = mix(from, to, corner);
   gl_Position = vec4(2.0 * pixel.x / uSize.x - 1.0, 1.0 - 2.0 * pixel.y / uSize.y, 0.0, 1.0);
   // colour: SH up to uDegree at the direction from the camera centre, + 0.5, >= 0
   vec3 d = normalize(g0.xyz - uCenter);
