@@ -13,6 +13,7 @@
   const TILE = 16, TILE_LARGE = 32, LARGE_IMAGE = 384 * 384;
   const DILATION = 0.3, GUARD_BAND = 1.3;
   const TEX_WIDTH = 2048;
+  const DISPLAY_WIDTH = 640;  // px: the width a camera's view is drawn at in the page
 
   // The compressed PLY's layout (PlayCanvas; `recon.gaussians.splat_formats`): per chunk of
   // 256 Gaussians 18 float bounds, per Gaussian 4 uint32 (position and log-scale 11-10-11 bit
@@ -287,7 +288,7 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       if (!gl) throw new Error("this browser has no WebGL2");
       if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("no float render targets");
       this.showCameras = true;
-      this.showPoints = true;
+      this.showPoints = false;  // drawn over the splats (they write no depth): off at first
       this.programs = {
         splat: program(gl, SPLAT_VS, SPLAT_FS),
         line: program(gl, LINE_VS, LINE_FS),
@@ -407,15 +408,22 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       this.mesh = { vao: mesh.vao, count: faces.length };
     }
 
-    // the view: cam_from_world (row-major, OpenCV), intrinsics and size in pixels
-    setCamera(i) {
+    // the view: cam_from_world (row-major, OpenCV), intrinsics and size in pixels. A camera's
+    // view is drawn at DISPLAY_WIDTH (its field of view kept), or with `native` at the size
+    // recon renders it (the browser tests compare the two).
+    setCamera(i, native = false) {
       const cam = this.scene.cameras[i];
       this.current = i;
       this.view = {
         cam_from_world: Float64Array.from(cam.cam_from_world),
         fx: cam.fx, fy: cam.fy, cx: cam.cx, cy: cam.cy, width: cam.width, height: cam.height,
       };
-      this._resize(cam.width, cam.height);
+      if (!native) {
+        const s = DISPLAY_WIDTH / cam.width, v = this.view;
+        Object.assign(v, { fx: v.fx * s, fy: v.fy * s, cx: v.cx * s, cy: v.cy * s,
+          width: DISPLAY_WIDTH, height: Math.round(cam.height * s) });
+      }
+      this._resize(this.view.width, this.view.height);
       const photo = this.root.querySelector(".recon-photo");
       if (photo && cam.image) photo.src = (this.root.dataset.root || "") + cam.image;
       if (photo) photo.style.display = cam.image ? "" : "none";

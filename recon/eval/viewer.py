@@ -132,7 +132,11 @@ def points_entry(scene) -> dict | None:
     if points is None or len(points) == 0:
         return None
     p = points.numpy()
-    c = colors.numpy() if colors is not None else np.full_like(p, 200, dtype=np.uint8)
+    c = (  # colours in [0, 1] -> bytes
+        np.clip(np.asarray(colors, np.float64) * 255 + 0.5, 0, 255).astype(np.uint8)
+        if colors is not None
+        else np.full(p.shape, 200, np.uint8)
+    )
     step = max(1, len(p) // MAX_POINTS)
     return {"xyz": b64(p[::step], "<f4"), "rgb": b64(c[::step], "u1")}
 

@@ -43,7 +43,7 @@ def evaluated(tmp_path_factory):
 def snapshot(driver, view: str, camera: int) -> np.ndarray:
     url = driver.execute_script(
         f"const v = window.reconViewers[{view!r}]; v.showCameras = false; v.showPoints = false;"
-        f"v.setCamera({camera}); return v.snapshot();"
+        f"v.setCamera({camera}, true); return v.snapshot();"
     )
     png = base64.b64decode(url.split(",", 1)[1])
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float32) / 255

@@ -72,7 +72,7 @@ def browser_render(folder, doc: dict) -> tuple[np.ndarray, dict]:
         status = driver.execute_script("return document.querySelector('.recon-status').textContent")
         url = driver.execute_script(
             "const v = window.reconViewers.scene; if (!v) return null;"
-            "v.showCameras = false; v.showPoints = false; v.setCamera(0); return v.snapshot();"
+            "v.showCameras = false; v.showPoints = false; v.setCamera(0, true); return v.snapshot();"
         )
         seen = {
             "errors": console_errors(driver),
