@@ -198,8 +198,8 @@ class Model(nn.Module):
     # Its renders at a coarser level than it trained at are not faithful: 3DGS dilates every
     # projected Gaussian by 0.3 px, which thickens and brightens the splats that minification
     # makes sub-pixel (the "dilation" artefact of zooming out, Yu et al. 2024, Mip-Splatting).
-    # Coarse views are rendered at the training level and area-downsampled instead (fox, trained
-    # at 1/3, four held-out photos at 1/8: 27.03 dB rendered at 1/8, 33.98 dB via 1/3).
+    # Coarse views are rendered at the training level and area-downsampled instead, as the
+    # photos of that level were made.
     aliases_when_minified: bool = False
 
     def plan_note(self, data: TrainData) -> str | None:

@@ -12,9 +12,9 @@ environment map for an unbounded capture, `recon.models.background`), MSE, Adam;
 SfM points the grid starts from the cells around them instead of from every cell.
 
 On an unbounded capture the loss also carries mip-NeRF 360's distortion loss (Barron et al.
-2022, eq. 15; `distortion` auto): on fox at 270 x 480, 1,000 steps, weight 0.01 gave 28.9 dB on
-three held-out views against 27.8 dB without (0.001: 28.2) and rendered faster (fewer floaters
-for rays to cross). Bounded synthetic scenes keep it off.
+2022, eq. 15; `distortion` auto): it pulls each ray's weight into one interval, so the
+contracted far field grows fewer floaters, which also leaves less for rays to cross
+(bench/results/ngp_unbounded.md). Bounded synthetic scenes keep it off.
 """
 
 from __future__ import annotations
@@ -453,9 +453,9 @@ def build(config: NGPConfig, scene: SceneInfo) -> NGPModel:
 
 
 # about 10k rays/s (~2.5k-ray batches of 64k samples at 4.2 steps/s on lego-200, 2 threads).
-# The lr decay is not fitted to the planned run (as 3dgs's schedules are): lego-200 lost 0.8 dB
-# with it (31.48 against 32.28 dB at 10 minutes, the decay planned over 1,440 steps, the run
-# made 3,409). The throughput probe's first steps, same machine: 88 ms, between lego-200's 83 ms
+# The lr decay is not fitted to the planned run (as 3dgs's schedules are): the plan
+# underestimates ngp's steps (its batches adapt), and a decay that ends early starves the hash
+# grid for the rest of the run. The throughput probe's first steps, same machine: 88 ms, between lego-200's 83 ms
 # and fox's 93 ms (both benchmark scenes, so either sits well inside the prior's tolerance).
 RAYS_PER_STEP = 2500  # a step of the default sample target (`step_pixels`)
 RESOLUTION = ResolutionPolicy(

@@ -83,9 +83,7 @@ def finest_lattice(side: float, footprint: float, unbounded: bool) -> int:
     when unbounded: `scene_to_unit_cube`), rounded to the nearest multiple of LATTICE_MULTIPLE,
     within [LATTICE_MIN, LATTICE_MAX]. Finer voxels than the photos resolve only add parameters
     for the total variation to smooth.
-    Measured (lego-200, 10 min, 2 threads, back to back, bench/results/volume_lean_fast.md):
-    192^3 (this rule) 3,704 steps, 33.43 dB, 1.32 GB peak, 21 MB on disk, 68-77 ms a frame;
-    256^3 2,929 steps, 32.85 dB, 2.12 GB, 42 MB, 90-117 ms.
+    (bench/results/volume_lean_fast.md: the rule's 192^3 against 256^3 on lego-200.)
     Example: lego-200 (recon's box 0.588, pixels 0.003165 wide) -> 185.8 -> 192; side 3,
     footprint 0.0145 -> 206.9 -> 192, unbounded 413.8 -> 416 -> 256."""
     across = side / footprint / (0.5 if unbounded else 1.0)
@@ -707,10 +705,8 @@ register(
                 "samples_per_batch": 0,
                 "default_steps": 12800,
             },
-            # SH degree 1 (12 instead of 27 SH floats a vertex): lego-200, 10 min, 2 threads,
-            # same VM back to back, both with the 256^3 lattice of the time: 3,396 steps,
-            # 32.06 dB, LPIPS 0.0153, 1.45 GB peak, 20 MB, against fast's 2,484 steps,
-            # 32.56 dB, 0.0127, 2.04 GB, 42 MB
+            # SH degree 1 (12 instead of 27 SH floats a vertex): half the memory and the file,
+            # more steps, a little less view dependence (bench/results/volume_lean_fast.md)
             "lean": {"sh_degree": 1},
         },
         # about 40k rays/s (adaptive batches up to 16k rays at 2.85 steps/s on lego-200, 2 threads);

@@ -33,10 +33,9 @@ the surface anywhere a view sees white: on sample_data a skirt below the plate's
 mask term (Wang et al. 2021, Sec. 3.3), the binary cross-entropy between each ray's opacity and
 its pixel's alpha (`mask_loss`, `mask_weight`), and training each ray on a random background
 colour with its target moved onto it (`recomposite`, as Instant-NGP trains synthetic scenes;
-`random_background`). Both are off by default: on sample_data at 10 minutes, with the eikonal
-weight then at 0.1, each raised the mesh's precision (0.864 -> 0.910 / 0.907) but lost more
-recall (0.940 -> 0.871 / 0.875) and 1.4-1.6 dB of held-out PSNR (`bench/results/sdf_alpha.md`);
-with the weight at 0.01 the plain run's precision is 0.982.
+`random_background`). Both are off by default: each raised the mesh's precision but lost more
+recall and held-out PSNR than it gained, and the lower eikonal weight gives the plain run the
+precision they were for (`bench/results/sdf_alpha.md`).
 """
 
 from __future__ import annotations
@@ -126,7 +125,7 @@ class SDFConfig:
     levels_steps: int = opt(2000, "coarse-to-fine: steps until every level is active")
     eikonal_weight: float = opt(
         0.01,
-        "lambda of the eikonal term, against the colour MSE (NeuS's 0.1 is against an L1 colour loss, whose gradient is ~10x the MSE's at these errors; 0.1 here: lego-200 24.7 dB, sample_data F 0.90)",
+        "lambda of the eikonal term, against the colour MSE (NeuS's 0.1 is against an L1 colour loss, whose gradient is ~10x the MSE's at these errors; 0.1 here over-smooths: bench/results/sdf_eikonal)",
     )
     eikonal_points: int = opt(2048, "points drawn uniformly in the box each step for it")
     points_weight: float = opt(
@@ -141,7 +140,7 @@ class SDFConfig:
     )
     march_steps: int = opt(
         256,
-        "marching steps along the scene box diagonal (512: 2.4x fewer rays a second and 1.3 dB lower on lego-200 at 10 min)",
+        "marching steps along the scene box diagonal (512: 2.4x fewer rays a second, which a time budget does not win back)",
     )
     max_samples_per_ray: int = opt(1024, "at most this many marched samples per ray (0 = no cap)")
     background: str = opt(
@@ -185,9 +184,8 @@ PRESETS = {"fast": {}, "paper": {"n_max": 2048, "log2_table_size": 19, "lr_decay
 SCHEDULE_FRACTIONS = {"lr_decay_steps": 1.0, "levels_steps": 0.5}
 # What a budgeted run re-plans mid-run from its measured step rate (`replan`): the hash levels'
 # schedule, not the learning-rate decay, which stays as fitted to the planned run. Re-planned
-# to the measured rate, the decay ended with the run and cost lego-200 (10 min, 2 threads,
-# same VM) 1.3 dB: 21.68 dB in 1,643 steps against 23.01 dB in 1,531 steps without it; a
-# lower learning rate late in a short run starves the field (ngp does not fit its decay either).
+# to the measured rate, the decay ended with the run and lowered the held-out PSNR: a lower
+# learning rate late in a short run starves the field (ngp does not fit its decay either).
 REPLAN_FRACTIONS = {"levels_steps": 0.5}
 # The termination pre-pass evaluates this many samples of every ray first (`march_terminated`;
 # the kept samples are the same whatever it is). An SDF's shell is a few samples thick, so 16

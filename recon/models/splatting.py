@@ -11,10 +11,9 @@ learning rates (means scaled by the scene extent, decayed exponentially), and le
 With `pose_refine` the step also learns a correction of the training view's pose
 (`recon.cameras.pose_refine`) with its own Adam (`pose_lr`). Against a scene still being fitted,
 an exact camera's photometric optimum is a quarter of a pixel to a pixel away, so exact cameras
-refined from the start wander and the scene follows them (lego-200, exact poses: 5,400 steps
-ended at 31.5 dB against 32.8 without; holding the cameras whose correction stayed below 1.5 px
-after 10 passes still cost 0.31 dB at 10 minutes). So cameras start on probation
-(`PoseCorrection.observe` / `release`): for pose_probation_passes passes their images are formed
+refined from the start wander and the scene follows them, and holding only the cameras whose
+correction stayed small still costs (bench/results/3dgs_pose_refine.md). So cameras start on
+probation (`PoseCorrection.observe` / `release`): for pose_probation_passes passes their images are formed
 at the given poses while each camera's pose gradient there is summed; then only the cameras
 whose mean gradient is more than pose_release_ratio times the median camera's are refined, and
 the others keep their given poses. A released camera gets one Adam step per visit (lr_pose,

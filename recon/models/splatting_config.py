@@ -18,11 +18,10 @@ EXTENT_RULES = ("auto", "cameras", "depth")
 # How late in a run of `schedule_steps` steps each step schedule may end (`fit_schedules`,
 # schedule_fit "tuned": the fast preset's; "reference" scales the config's own schedules,
 # `schedule_fractions`): with the fast preset and a 1,600-step plan: lr_decay_steps 1,600, densify_stop 1,120,
-# opacity_reset_interval 560, sh_degree_interval 320.
-# measured on fox at 1,600 steps, 269 x 478 (bench/results/3dgs_real_capture.md): densifying
-# until 0.7 of the run with the means lr decayed over the whole run beats the lego-tuned steps
-# (30.66 against 29.38 dB) and shrinking everything by the same factor (30.51 dB, far fewer
-# Gaussians, LPIPS 0.160 against 0.140).
+# opacity_reset_interval 560, sh_degree_interval 320. Densifying until 0.7 of the run with the
+# means' rate decayed over all of it leaves the last third to refine what densification made;
+# the lego-tuned steps or everything shrunk by one factor densify too little on a real capture
+# (bench/results/3dgs_real_capture.md).
 SCHEDULE_FRACTIONS = {
     "lr_decay_steps": 1.0,
     "densify_stop": 0.7,
@@ -210,17 +209,12 @@ PRESETS = {
         "schedule_fit": "tuned",
         "clone_opacity_correction": True,
         # a lower split/clone threshold than the reference's 0.0002: at 0.0002 the count stops
-        # growing long before a CPU run ends (fox: 93 k Gaussians at 10 min, 96 k at 30); with
-        # 0.00015 (bench/results/3dgs_c2f_ab.md, 10 min each) fox keeps 131 k (LPIPS 0.0996
-        # against 0.1053, 32.33 against 32.52 dB; 2 min 27.42 against 27.09 dB) and lego-200
-        # 57 k (33.43 against 33.22 dB, LPIPS 0.0108 against 0.0118)
+        # growing long before a CPU run ends, the run's few steps leaving the view-space
+        # gradients small (bench/results/3dgs_c2f_ab.md)
         "densify_grad_threshold": 0.00015,
         # twice the reference's rates for the means, scales and colours (opacity and rotations
-        # unchanged): they are tuned for 30 k steps and a CPU run makes 1.5-8 k. Measured in
-        # pairs, same seed (bench/results/3dgs_lr_scale.md): fox-real 2 min +0.13 dB, 10 min
-        # +0.12 and -0.04 dB, 30 min +0.56 (2.8 k steps) and +0.06 dB (4.8 k steps), LPIPS lower
-        # in all five; lego-200 10 min +0.89 dB (34.00, LPIPS 0.0089 against 0.0118); x4 lost
-        # 0.22 dB on fox at 10 min
+        # unchanged): they are tuned for 30 k steps and a CPU run makes 1.5-8 k; four times
+        # overshoots (bench/results/3dgs_lr_scale.md)
         "lr_means": 0.00032,
         "lr_means_final": 0.0000032,
         "lr_scales": 0.01,
@@ -228,26 +222,26 @@ PRESETS = {
         "lr_sh_rest": 0.00025,
         # and on real captures all but the means' (which decay 100x over the run) anneal to a
         # tenth over the run's second half, in place of the reference's constant rates: one
-        # image a step at these rates leaves the opacities and scales jittering (fox-real +0.39
-        # and +0.47 dB at 10 and 30 min; lego-200 -0.39 dB, so auto; see anneal_factor)
+        # image a step at these rates leaves the opacities and scales jittering (a synthetic
+        # scene's exact photos do not: auto; see anneal_factor)
         "lr_anneal": -1.0,
         # at these rates the scene fits a wrong camera pose sooner: a shorter pose probation
         # (bench/results/3dgs_pose_refine.md; see pose_probation_passes above)
         "pose_probation_passes": 4,
-        # no coarse-to-fine: at equal wall time on fox it saved 34 s over the first 500 steps
-        # and lost them again to larger Gaussians (same steps, 32.48 vs 32.52 dB without;
-        # bench/results/3dgs_c2f_ab.md)
+        # no coarse-to-fine: what it saves in the first steps' time it loses again to larger
+        # Gaussians (bench/results/3dgs_c2f_ab.md)
         "appearance": "auto",
-        # AbsGS densification on real captures only: fox-real 10 min +0.11 dB, LPIPS 0.115
-        # against 0.120; lego-200 -0.15 dB (bench/results/3dgs_absgrad.md)
+        # AbsGS densification on real captures only: it splits textured regions whose signed
+        # gradients cancel, which a synthetic scene's clean photos do not need
+        # (bench/results/3dgs_absgrad.md)
         "densify_abs_grad": "auto",
     },
 }
 # What `--preset auto` means on a GPU: the reference's settings and schedules (scaled into the
 # planned steps), plus what a real capture needs that the reference's synthetic and curated
 # scenes did not: per-photo exposure compensation, AbsGS densification and the annealed rates,
-# each "auto" (real captures only: a synthetic scene trains as with "paper"). On fox at 3,000
-# steps they gave +0.6 dB over "paper" (bench/results/2026-11-28-3dgs-gpu-preset.md).
+# each "auto" (real captures only: a synthetic scene trains as with "paper";
+# bench/results/2026-11-28-3dgs-gpu-preset.md).
 PRESETS["gpu"] = {
     **PRESETS["paper"],
     "appearance": "auto",

@@ -87,8 +87,9 @@ SCENE_RATES = {  # parameter group -> its config rate; the means have their own 
 
 def anneal_factor(config: GaussiansConfig, unbounded: bool) -> float:
     """lr_anneal, or with -1 (auto) 0.1 on unbounded captures and 1 (constant rates) on bounded
-    scenes. Measured (bench/results/3dgs_lr_anneal.md), 0.1 against 1: fox-real 10 min 32.70
-    against 32.31 dB, 30 min 33.51 against 33.04; lego-200 10 min 33.61 against 34.00."""
+    scenes: a real capture's photos disagree a little (exposure, motion), and constant rates
+    keep the opacities and scales chasing each photo; a synthetic scene's exact photos keep
+    improving at constant rates (bench/results/3dgs_lr_anneal.md)."""
     if config.lr_anneal == -1.0:
         return 0.1 if unbounded else 1.0
     if not config.lr_anneal > 0:
@@ -134,11 +135,10 @@ def pose_probation_end(config: GaussiansConfig, num_cameras: int) -> int:
 
 
 def prune_fraction(config: GaussiansConfig, scene: SceneInfo) -> float:
-    """prune_contribution, or with -1 (auto) 0.5 for bounded scenes and 0 for unbounded ones.
-    Measured at 10 min (bench/results/3dgs_prune_contribution.md): lego-200 keeps 28.3 k
-    Gaussians instead of 56.7 k at 33.50 against 33.53 dB (LPIPS 0.0104 both), but fox-real
-    loses 0.43 dB (31.99 against 32.43): its short runs leave too few steps to refill the
-    background. With densify_mode mcmc, auto is 0: max_gaussians is already the budget."""
+    """prune_contribution, or with -1 (auto) 0.5 for bounded scenes and 0 for unbounded ones:
+    a bounded scene keeps its picture with half the Gaussians, a real capture's short runs
+    leave too few steps to refill the background (bench/results/3dgs_prune_contribution.md).
+    With densify_mode mcmc, auto is 0: max_gaussians is already the budget."""
     if config.prune_contribution != -1.0:
         return config.prune_contribution
     return 0.0 if scene.unbounded or uses_mcmc(config, bool(scene.unbounded)) else 0.5
@@ -147,7 +147,7 @@ def prune_fraction(config: GaussiansConfig, scene: SceneInfo) -> float:
 def uses_antialiasing(config: GaussiansConfig, unbounded: bool) -> bool:
     """on | off, or auto: on for unbounded captures (real photos: at equal steps on fox-real it
     scores higher at the training size and, with the footprint filter, at the photos' size no
-    worse than the training-size render upsampled, where the plain model loses 0.7 dB), off for
+    worse than the training-size render upsampled, where the plain model is worse), off for
     bounded synthetic scenes (lego-200: a worse LPIPS). true / false: configs saved when this
     was a boolean."""
     value = {True: "on", False: "off", "true": "on", "false": "off"}.get(
@@ -170,9 +170,10 @@ def view_for_step(step: int, n_views: int, seed: int) -> int:
 
 
 def uses_abs_grad(config: GaussiansConfig, unbounded: bool) -> bool:
-    """on | off, or auto: on for unbounded captures. At 10 min (bench/results/3dgs_absgrad.md)
-    fox-real gains 0.11 dB and LPIPS 0.115 against 0.120 (threshold 0.0006; 0.0004 grew 30 %
-    more Gaussians, made fewer steps and lost PSNR), while lego-200 loses 0.15 dB."""
+    """on | off, or auto: on for unbounded captures, whose textured regions have view-space
+    gradients that cancel in sign; a synthetic scene does better without
+    (bench/results/3dgs_absgrad.md; its threshold 0.0006: lower grows Gaussians that cost
+    steps)."""
     return on_off_auto(config.densify_abs_grad, "densify_abs_grad", unbounded)
 
 

@@ -24,8 +24,8 @@ class SfmConfig:
     the principal point. On fox (a phone's lens: k2 matters, the principal point is 16 px off
     the centre) SIMPLE_RADIAL with the centred principal point left every camera 0.12 deg off
     the reference poses (0.6 deg common rotation; 0.7 px at the quarter size 3dgs trains at),
-    OPENCV with the refined point 0.018 deg; held-out 3dgs after 10 min: 32.29 dB / LPIPS 0.094
-    against 32.09 / 0.103 (bench/results/sfm_camera_model.md).
+    OPENCV with the refined point 0.018 deg, and 3dgs trained on its poses scores higher
+    (bench/results/sfm_camera_model.md).
     """
 
     max_image_size: int = opt(1024, "SIFT runs on photos downscaled to this longer side (px)")
