@@ -14,6 +14,7 @@
   const DILATION = 0.3, GUARD_BAND = 1.3;
   const TEX_WIDTH = 2048;
   const DISPLAY_WIDTH = 640;  // px: the width a camera's view is drawn at in the page
+  const PICK_RADIUS = 12;  // px: how near a click must be to a camera's centre to fly there
 
   // The compressed PLY's layout (PlayCanvas; `recon.gaussians.splat_formats`): per chunk of
   // 256 Gaussians 18 float bounds, per Gaussian 4 uint32 (position and log-scale 11-10-11 bit
@@ -581,14 +582,22 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
     // ---- orbit (left drag), pan (right or shift drag), zoom (wheel), reset -------------------
     _controls() {
       const c = this.canvas;
-      let last = null, panning = false;
+      let last = null, down = [0, 0], panning = false;
       c.addEventListener("contextmenu", (e) => e.preventDefault());
       c.addEventListener("pointerdown", (e) => {
-        last = [e.clientX, e.clientY];
+        last = down = [e.clientX, e.clientY];
         panning = e.button === 2 || e.shiftKey;
         c.setPointerCapture(e.pointerId);
       });
-      c.addEventListener("pointerup", () => (last = null));
+      c.addEventListener("pointerup", (e) => {
+        const moved = last && Math.hypot(e.clientX - down[0], e.clientY - down[1]) > 3;
+        last = null;
+        if (moved || e.button !== 0) return;
+        const rect = c.getBoundingClientRect();  // a click on a camera flies to it
+        const i = this.pickCamera((e.clientX - rect.left) * c.width / rect.width,
+          (e.clientY - rect.top) * c.height / rect.height);
+        if (i !== null) this.flyTo(i);
+      });
       c.addEventListener("pointermove", (e) => {
         if (!last) return;
         const dx = e.clientX - last[0], dy = e.clientY - last[1];
@@ -600,6 +609,27 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         e.preventDefault();
         this.zoom(Math.exp(e.deltaY * 0.001));
       }, { passive: false });
+    }
+
+    // the camera whose centre is drawn within PICK_RADIUS px of canvas pixel (x, y), nearest
+    // first (null: none), as the frusta are drawn (cameras shown)
+    pickCamera(x, y) {
+      if (!this.showCameras) return null;
+      const m = this.view.cam_from_world, v = this.view;
+      let best = null, bestD = PICK_RADIUS;
+      this.scene.cameras.forEach((cam, i) => {
+        const p = [0, 1, 2].map((r) => m[4 * r] * cam.centre[0] + m[4 * r + 1] * cam.centre[1] + m[4 * r + 2] * cam.centre[2] + m[4 * r + 3]);
+        if (p[2] <= (this.scene.near || 0.01)) return;
+        const d = Math.hypot(v.fx * p[0] / p[2] + v.cx - x, v.fy * p[1] / p[2] + v.cy - y);
+        if (d < bestD) [best, bestD] = [i, d];
+      });
+      return best;
+    }
+
+    flyTo(i) {  // the list follows, and the photo
+      this.setCamera(i);
+      const list = this.root.querySelector(".recon-cameras");
+      if (list) list.value = i;
     }
 
     _moveWorld(worldFromWorld) { // the camera moved by a world transform T: cam_from_world T^-1

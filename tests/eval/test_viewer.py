@@ -151,6 +151,54 @@ def test_compressed_gaussians_are_drawn_as_they_decode(tmp_path):
     assert value >= 40.0, value
 
 
+def test_a_click_on_a_camera_flies_to_it(tmp_path):
+    """Two cameras; from the first, a click where the second's centre is drawn flies to the
+    second (and the list follows); a click on empty space does nothing."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    first = view_camera(96, 72)
+    eye = torch.tensor([[-1.0, 1.0, -0.4]])  # beyond the scene, seen by the first camera
+    second = Cameras(
+        first.K.clone(),
+        look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0])),
+        first.width.clone(),
+        first.height.clone(),
+    )
+    doc = {
+        "cameras": [camera_entry(first, "a", "test"), camera_entry(second, "b", "train")],
+        "background": [1.0, 1.0, 1.0],
+        "near": 0.01,
+        "centre": [0.0, 0.0, 0.0],
+        "frustum_size": 0.05,
+    }
+    # where the first camera sees the second's centre
+    p = first.cam_from_world[0] @ torch.cat([eye[0], torch.ones(1)])
+    u = float(first.K[0, 0, 0] * p[0] / p[2] + first.K[0, 0, 2])
+    v = float(first.K[0, 1, 1] * p[1] / p[2] + first.K[0, 1, 2])
+    assert 0 < u < 96 and 0 < v < 72
+    page = write_page(tmp_path / "page", "scene", doc)
+    with chromium_driver(webgl=True) as driver:
+        driver.get(page.as_uri())
+        deadline = time.time() + 20
+        while not driver.execute_script("return window.reconViewersReady === true"):
+            assert time.time() < deadline
+            time.sleep(0.05)
+        driver.execute_script("window.reconViewers.scene.setCamera(0, true)")
+        picked = driver.execute_script(f"return window.reconViewers.scene.pickCamera({u}, {v})")
+        nothing = driver.execute_script("return window.reconViewers.scene.pickCamera(2, 2)")
+        canvas = driver.find_element("css selector", "canvas")
+        size = canvas.size  # CSS pixels: the canvas is shown at its own size here
+        ActionChains(driver).move_to_element_with_offset(
+            canvas, round(u * size["width"] / 96 - size["width"] / 2),
+            round(v * size["height"] / 72 - size["height"] / 2),
+        ).click().perform()  # fmt: skip
+        current = driver.execute_script("return window.reconViewers.scene.current")
+        listed = driver.execute_script("return document.querySelector('.recon-cameras').value")
+        errors = console_errors(driver)
+    assert (picked, nothing) == (1, None)
+    assert current == 1 and listed == "1" and errors == []
+
+
 def test_a_page_without_its_scene_says_so(tmp_path):
     page = write_page(tmp_path / "page", "scene", {"cameras": []})
     (tmp_path / "page" / "scene.js").unlink()
