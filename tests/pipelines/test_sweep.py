@@ -244,23 +244,24 @@ def test_slurm_jobs_carry_threads_memory_time_and_gpu(two_scenes, device):
 @pytest.mark.slow
 def test_tiny_sweep_on_sample_data_end_to_end(tmp_path):
     shutil.copytree(ROOT / "sample_data", tmp_path / "data" / "sample")
-    config = write_config(tmp_path, {"sample": {"transforms": "data/sample"}}, ["3dgs"], [8])
+    config = write_config(tmp_path, {"sample": {"transforms": "data/sample"}}, ["3dgs"], [15])
     snakemake(config)
     results = tmp_path / "results"
-    rows = list(__import__("csv").DictReader((results / "table.csv").open()))  # one run: 3dgs-8s
-    assert [(r["scene"], r["run"], r["method"]) for r in rows] == [("sample", "3dgs-8s", "3dgs")]
+    rows = list(__import__("csv").DictReader((results / "table.csv").open()))  # one run: 3dgs-15s
+    assert [(r["scene"], r["run"], r["method"]) for r in rows] == [("sample", "3dgs-15s", "3dgs")]
     row = rows[0]
-    # it trained: a one-step model renders these views at ~10.9 dB; how far 8 s get depends on
-    # the machine and its load (above 15 dB in earlier CI runs, 14.46 on a slower VM, 12.86 on
-    # that VM under a loaded test run), so the floor only tells a trained model from an untrained one
-    assert float(row["psnr"]) > 12 and float(row["budget_s"]) == 8 and int(row["steps"]) > 1
+    # it trained: a one-step model renders these views at ~10.9 dB; how far the budget gets
+    # depends on the machine and its load (8 s: above 15 dB in earlier CI runs, 14.6 alone on
+    # the 2-core VM, but 42 steps and 9.98 dB beside the other test worker, setup and the probe
+    # taking most of it: hence 15 s), so the floor only tells a trained model from an untrained one
+    assert float(row["psnr"]) > 12 and float(row["budget_s"]) == 15 and int(row["steps"]) > 1
     assert float(row["fscore"]) >= 0  # sample_data has a ground-truth mesh
     assert (results / "sample_speed_vs_error.png").stat().st_size > 1000
-    assert "| sample | 3dgs-8s | 3dgs |" in (results / "table.md").read_text()
+    assert "| sample | 3dgs-15s | 3dgs |" in (results / "table.md").read_text()
     # the workspace is recon's own: `recon status` reads it
     ws = tmp_path / "ws" / "sample"
-    assert (ws / "runs" / "3dgs-8s" / "model.pt").exists()
-    assert (ws / "runs" / "3dgs-8s" / "eval" / "metrics.json").exists()
+    assert (ws / "runs" / "3dgs-15s" / "model.pt").exists()
+    assert (ws / "runs" / "3dgs-15s" / "eval" / "metrics.json").exists()
     # nothing is stale afterwards
     assert planned_outputs(config) == set()
 
