@@ -25,6 +25,7 @@ import torch
 from recon.cameras import Cameras
 from recon.gaussians.projection import covariance_3d
 from recon.gaussians.splat_formats import compress_splats
+from recon.train.resolution import output_levels
 from recon.workspace import Workspace, atomic_write_text
 from recon.workspace.runs import load_run
 
@@ -166,8 +167,6 @@ def mesh_entry(ws: Workspace, run: str, scene) -> dict | None:
 
 def viewer_scene(ws: Workspace, run: str, page_dir: Path) -> dict:
     """Everything the viewer draws for `run` (see the module docstring)."""
-    from recon.train.resolution import output_levels
-
     model, scene, run_doc = load_run(ws, run, "cpu")
     level = output_levels(scene, run_doc)[1]
     doc = {
@@ -260,6 +259,7 @@ def run_page(ws: Workspace, run: str) -> Path:
     if not model.exists():  # load_run says why (no such run, or not trained yet)
         load_run(ws, run, "cpu")
     if script.exists() and page.exists() and script.stat().st_mtime >= model.stat().st_mtime:
+        shutil.copyfile(VIEWER_JS, folder / "viewer.js")  # this recon's viewer, whatever wrote it
         return page
     doc = viewer_scene(ws, run, ws.report_html.parent)
     return write_page(folder, run, doc, page=f"{run}.html", root="../")
