@@ -130,18 +130,29 @@ def recomposite(rgb: Tensor, alpha: Tensor, old: Tensor, new: Tensor) -> Tensor:
     return rgb + (1.0 - alpha)[:, None] * (new - old)
 
 
-def training_targets(
-    batch: dict[str, Tensor], random_background: bool, old: Tensor, generator: torch.Generator
-) -> tuple[Tensor, Tensor | None]:
-    """A training batch's targets (N, 3) and the background colours (N, 3) its rays composite
-    on (None: the model's own). With `random_background` (Instant-NGP's training of synthetic
-    scenes) each ray draws one random colour and its target (`TrainData.rays_at`, with "alpha")
-    is moved from `old` onto it (`recomposite`); else the targets are the batch's rgb."""
-    target = batch["rgb"]
-    if not random_background:
-        return target, None
-    new = torch.rand(target.shape[0], 3, generator=generator, device=generator.device).to(target)
-    return recomposite(target, batch["alpha"], old, new), new
+@dataclass(frozen=True)
+class TrainingBackground:
+    """What a training step's rays composite on, chosen for the run by the trainer
+    (`recon.train.trainer.training_background`): the scene's `colour` (3,), which the photos
+    were composited on, or with `random` one random colour a ray (Instant-NGP's training of
+    synthetic scenes, Mueller et al. 2022), each target moved onto its ray's colour
+    (`recomposite`: the photos' alpha is needed)."""
+
+    colour: Tensor
+    random: bool = False
+
+    def targets(
+        self, batch: dict[str, Tensor], generator: torch.Generator
+    ) -> tuple[Tensor, Tensor | None]:
+        """A ray batch's targets (N, 3) and the colours (N, 3) its rays composite on (None: the
+        model's own, `colour`): with `random` each ray draws its colour from `generator` and
+        its target (`TrainData.rays_at`, with "alpha") moves onto it."""
+        target = batch["rgb"]
+        if not self.random:
+            return target, None
+        g = generator
+        new = torch.rand(target.shape[0], 3, generator=g, device=g.device).to(target)
+        return recomposite(target, batch["alpha"], self.colour.to(target), new), new
 
 
 @dataclass
@@ -201,6 +212,12 @@ class Model(nn.Module):
     # Coarse views are rendered at the training level and area-downsampled instead, as the
     # photos of that level were made.
     aliases_when_minified: bool = False
+    background: Tensor  # (3,) buffer: the scene's colour, composited behind everything it renders
+    # Its config's random_background ("auto" | "on" | "off"; "off" where a method has no such
+    # option): whether the trainer composites training rays on random colours
+    # (`TrainingBackground`); `learns_background`: an environment map is its background.
+    random_background: str = "off"
+    learns_background: bool = False
 
     def plan_note(self, data: TrainData) -> str | None:
         """What the model chose from the training data before its first step, and why (one
@@ -223,8 +240,11 @@ class Model(nn.Module):
     def before_step(self, data: TrainData, step: int) -> None:
         """Called before the loss of 0-based `step` (occupancy updates, schedules of its own)."""
 
-    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
-        """The loss of `step` (a batch or a view of `data`) and the scalars to log."""
+    def training_loss(
+        self, data: TrainData, step: int, background: TrainingBackground
+    ) -> tuple[Tensor, dict]:
+        """The loss of `step` (a batch or a view of `data`, its rays composited on
+        `background`, the trainer's) and the scalars to log."""
         raise NotImplementedError
 
     def after_backward(self, data: TrainData, step: int, stats: dict) -> None:

@@ -38,7 +38,6 @@ from recon.models.background import (
     EnvironmentMap,
     check_random_background,
     learns_background,
-    trains_on_random_background,
 )
 from recon.models.base import (
     MethodSpec,
@@ -48,8 +47,8 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
+    TrainingBackground,
     register,
-    training_targets,
 )
 from recon.models.raymarch import (
     mlp_dtype,
@@ -241,6 +240,7 @@ class NeRFModel(Model):
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
         check_random_background(cfg.random_background)
+        self.random_background = cfg.random_background
         self.dtype = mlp_dtype(self.aabb.device, cfg.precision)
         self.step_size = (self.aabb[1] - self.aabb[0]).norm().item() / cfg.march_steps
         self.generator = torch.Generator().manual_seed(cfg.seed)
@@ -449,10 +449,9 @@ class NeRFModel(Model):
                 generator=self.generator,
             )
 
-    def _random_background(self, data: TrainData) -> bool:
-        return trains_on_random_background(
-            self.cfg.random_background, data.alpha is not None, self.environment is not None
-        )
+    @property
+    def learns_background(self) -> bool:
+        return self.environment is not None
 
     def step_pixels(self, data: TrainData) -> int:
         return self.cfg.rays_per_batch
@@ -467,14 +466,14 @@ class NeRFModel(Model):
     def before_step(self, data: TrainData, step: int) -> None:
         self._update_occupancy(step)
 
-    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+    def training_loss(
+        self, data: TrainData, step: int, background: TrainingBackground
+    ) -> tuple[Tensor, dict]:
         cfg = self.cfg
         batch = sample_rays(data, cfg.rays_per_batch, self.generator)
-        target, background = training_targets(
-            batch, self._random_background(data), self.background, self.generator
-        )
+        target, colours = background.targets(batch, self.generator)
         coarse, fine = self._render_rays(
-            batch["origins"], batch["directions"], jitter=True, background=background
+            batch["origins"], batch["directions"], jitter=True, background=colours
         )
         mse_c = torch.mean((coarse["rgb"] - target) ** 2)
         mse_f = torch.mean((fine["rgb"] - target) ** 2)

@@ -34,7 +34,6 @@ from recon.models.background import (
     EnvironmentMap,
     check_random_background,
     learns_background,
-    trains_on_random_background,
 )
 from recon.models.base import (
     MethodSpec,
@@ -44,8 +43,8 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
+    TrainingBackground,
     register,
-    training_targets,
 )
 from recon.models.raymarch import (
     batch_pixels,
@@ -209,6 +208,7 @@ class NGPModel(Model):
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
         check_random_background(cfg.random_background)
+        self.random_background = cfg.random_background
         self.distortion_weight = (
             cfg.distortion_weight if uses_distortion(cfg.distortion, scene.unbounded) else 0.0
         )
@@ -336,11 +336,6 @@ class NGPModel(Model):
         bg = self.background_colour(directions) if background is None else background
         return volume_render(sigma, rgb, t0, t1, ri, origins.shape[0], bg), ri, t0, t1
 
-    def _random_background(self, data: TrainData) -> bool:
-        return trains_on_random_background(
-            self.cfg.random_background, data.alpha is not None, self.environment is not None
-        )
-
     @torch.no_grad()
     def _render_rays_eval(self, origins: Tensor, directions: Tensor):
         """The kept samples of `march_terminated` with the field's geometry (density and
@@ -352,6 +347,10 @@ class NGPModel(Model):
         return volume_render(
             sigma, rgb, t0, t1, ri, origins.shape[0], self.background_colour(directions)
         )
+
+    @property
+    def learns_background(self) -> bool:
+        return self.environment is not None
 
     # ---- Model interface ---------------------------------------------------------------------
     def step_pixels(self, data: TrainData) -> int:
@@ -386,13 +385,13 @@ class NGPModel(Model):
                 generator=self.generator,
             )
 
-    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+    def training_loss(
+        self, data: TrainData, step: int, background: TrainingBackground
+    ) -> tuple[Tensor, dict]:
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        target, background = training_targets(
-            batch, self._random_background(data), self.background, self.generator
-        )
-        out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"], background)
+        target, colours = background.targets(batch, self.generator)
+        out, ri, t0, t1 = self._render_rays_train(batch["origins"], batch["directions"], colours)
         n_samples = ri.shape[0]
         mse = torch.mean((out.rgb - target) ** 2)
         loss = mse

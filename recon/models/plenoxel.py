@@ -38,6 +38,7 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
+    TrainingBackground,
     register,
 )
 from recon.models.plenoxel_bake import bake_lattice, lattice_points, vertices_in_cells
@@ -321,7 +322,10 @@ class PlenoxelModel(Model):
             ray_idx, t0, t1 = devices.masked(keep, ray_idx, t0, t1)
         return ray_idx, t0, t1
 
-    def render_rays(self, origins: Tensor, dirs: Tensor, jitter: bool) -> dict[str, Tensor]:
+    def render_rays(
+        self, origins: Tensor, dirs: Tensor, jitter: bool, background: Tensor | None = None
+    ) -> dict[str, Tensor]:
+        """Rays (R, 3) composited on `background` (R, 3) (None: the model's colour)."""
         R = origins.shape[0]
         g = self.generator
         u = torch.rand(R, generator=g, device=g.device).to(origins.device) if jitter else None
@@ -329,7 +333,8 @@ class PlenoxelModel(Model):
         mids = 0.5 * (t0 + t1)
         x = origins[ray_idx] + mids[:, None] * dirs[ray_idx]
         rgb, sigma = self._rgb_sigma(x, dirs[ray_idx])
-        out = volume_render(sigma, rgb, t0, t1, ray_idx, R, self.background)
+        bg = self.background if background is None else background
+        out = volume_render(sigma, rgb, t0, t1, ray_idx, R, bg)
         return {
             "rgb": out.rgb,
             "acc": out.acc,
@@ -543,11 +548,14 @@ class PlenoxelModel(Model):
         if step % self.cfg.occupancy_every == 0:
             self._update_occupancy(warmup=step < 32 and not self.cfg.bake_from)
 
-    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+    def training_loss(
+        self, data: TrainData, step: int, background: TrainingBackground
+    ) -> tuple[Tensor, dict]:
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        out = self.render_rays(batch["origins"], batch["directions"], jitter=True)
-        mse = F.mse_loss(out["rgb"], batch["rgb"])
+        target, colours = background.targets(batch, self.generator)
+        out = self.render_rays(batch["origins"], batch["directions"], True, colours)
+        mse = F.mse_loss(out["rgb"], target)
         self._samples = out["samples"]
         return mse, {  # tensors where a float would sync: the loop reads them when it logs
             "loss": mse.detach(),  # + the total variation, after the backward pass

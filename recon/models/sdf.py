@@ -55,7 +55,6 @@ from recon.models.background import (
     OuterVolume,
     check_random_background,
     learns_background,
-    trains_on_random_background,
 )
 from recon.models.base import (
     MethodSpec,
@@ -65,8 +64,8 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
+    TrainingBackground,
     register,
-    training_targets,
 )
 from recon.models.raymarch import (
     batch_pixels,
@@ -237,6 +236,7 @@ class SDFModel(Model):
             EnvironmentMap() if learns_background(cfg.background, scene.unbounded) else None
         )
         check_random_background(cfg.random_background)
+        self.random_background = cfg.random_background
         if cfg.outer_volume not in ("on", "off"):
             raise ValueError(f"outer_volume must be on or off, got {cfg.outer_volume!r}")
         self.outer = None
@@ -358,12 +358,9 @@ class SDFModel(Model):
         t_start = self.outer.start(origins, directions, t_max, t_max > t_min)
         return self.outer(origins, directions, t_start, training, self.generator)
 
-    def _random_background(self, data: TrainData) -> bool:
-        return trains_on_random_background(
-            self.cfg.random_background,
-            data.alpha is not None,
-            self.environment is not None or self.outer is not None,
-        )
+    @property
+    def learns_background(self) -> bool:
+        return self.environment is not None or self.outer is not None
 
     def _surface_points_loss(self, data: TrainData) -> Tensor:
         """mean |f| (in box half-sizes) over points_per_step of the data's surface points: the
@@ -421,14 +418,14 @@ class SDFModel(Model):
             step, cfg.levels_start, cfg.n_levels, cfg.levels_steps
         )
 
-    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+    def training_loss(
+        self, data: TrainData, step: int, background: TrainingBackground
+    ) -> tuple[Tensor, dict]:
         cfg = self.cfg
         n_rays = self.n_rays
         batch = sample_rays(data, n_rays, self.generator)
-        target, background = training_targets(
-            batch, self._random_background(data), self.background, self.generator
-        )
-        out, grad = self._render_rays(batch["origins"], batch["directions"], True, background)
+        target, colours = background.targets(batch, self.generator)
+        out, grad = self._render_rays(batch["origins"], batch["directions"], True, colours)
         mse = torch.mean((out.rgb - target) ** 2)
         mask = out.acc.new_zeros(())
         if cfg.mask_weight > 0 and data.alpha is not None:

@@ -67,6 +67,7 @@ from recon.models.base import (
     ResolutionPolicy,
     SceneInfo,
     TrainData,
+    TrainingBackground,
     register,
 )
 from recon.models.schedules import (
@@ -252,7 +253,9 @@ class GaussianModel(Model):
     def before_step(self, data: TrainData, step: int) -> None:
         self._extent = self._prepare_step(data, step)
 
-    def training_loss(self, data: TrainData, step: int) -> tuple[Tensor, dict]:
+    def training_loss(
+        self, data: TrainData, step: int, background: TrainingBackground
+    ) -> tuple[Tensor, dict]:
         """One view, full resolution. The `3dgs.*` profiler labels split the step's time (see
         pipelines/bench_gaussians.py)."""
         c = self.config
@@ -273,7 +276,7 @@ class GaussianModel(Model):
         splats.means2d.retain_grad()
         abs_grad = torch.zeros_like(splats.means2d) if self.strategy.uses_abs_grad else None
         with record_function("3dgs.rasterize"):
-            rgb, _ = composite_rgb(splats, self.background, abs_grad)
+            rgb, _ = composite_rgb(splats, background.colour, abs_grad)
         rgb = self._corrected(rgb, view, data.cameras)
         target = level.images[view]
         with record_function("3dgs.loss"):

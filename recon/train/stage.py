@@ -33,7 +33,7 @@ from recon.train.resolution import (
     trained_resolution,
     working_resolution,
 )
-from recon.train.trainer import Trainer
+from recon.train.trainer import Trainer, training_background
 from recon.workspace import Workspace, WorkspaceError, atomic_path, atomic_write_json
 from recon.workspace.registration import partial_warning
 from recon.workspace.scene import Scene, level_size, load_images, load_scene, load_train_data
@@ -324,6 +324,9 @@ def _setup_run(ws, run, cfg, spec, method_cfg, device_doc, resume, log_fn) -> _R
     held = heldout_views(scene, cfg.eval_views)
     model = spec.build(method_cfg, scene.info).to(device)
     trainer = Trainer(model)
+    trainer.background = training_background(model, data)
+    if trainer.background.random:
+        log_fn("training rays composite on a random colour each (the photos have alpha)")
     if note := model.plan_note(data):
         log_fn(note)
     k_eval = eval_downscale(scene, res.downscale, cfg.eval_max_side)

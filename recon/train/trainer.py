@@ -4,7 +4,9 @@ schedules (`Model.optimizers`), computes its loss (`Model.training_loss`) and ac
 update in callbacks (`before_step`, `after_backward`, `after_step`); the trainer builds the
 Adam optimizers (Kingma & Ba 2015), sets every group's learning rate for the step, runs the
 backward pass and the updates, and saves and restores the optimizers' state with the model's
-own (`state_dict`, `load_state_dict`).
+own (`state_dict`, `load_state_dict`). It also chooses what the training rays composite on
+(`training_background`: the scene's colour, or random colours where the model's config asks
+for them and the photos have alpha) and hands it to every loss.
 
 A step, in order: `before_step`; the loss; optimizers (re)built where a model replaced its
 parameters; gradients cleared; backward; `after_backward`; each due optimizer's learning rates
@@ -17,7 +19,8 @@ import torch
 from torch import Tensor
 from torch.profiler import record_function
 
-from recon.models.base import Model, OptimizerSpec, TrainData
+from recon.models.background import trains_on_random_background
+from recon.models.base import Model, OptimizerSpec, TrainData, TrainingBackground
 
 # What a checkpoint written before the trainer existed called each optimizer's state.
 LEGACY_OPTIMIZER_KEYS = {
@@ -46,6 +49,16 @@ def build_optimizer(spec: OptimizerSpec) -> torch.optim.Optimizer:
     return torch.optim.Adam(groups, betas=spec.betas, eps=spec.eps, fused=spec.fused)
 
 
+def training_background(model: Model, data: TrainData) -> TrainingBackground:
+    """The run's training background: the model's `background` colour, random colours a ray
+    where its `random_background` mode asks for them (`background.trains_on_random_background`:
+    "auto" where the photos have alpha and the model learns no environment map)."""
+    random = trains_on_random_background(
+        model.random_background, data.alpha is not None, model.learns_background
+    )
+    return TrainingBackground(model.background, random)
+
+
 def _tensors(optimizer: torch.optim.Optimizer) -> list[int]:
     return [id(p) for group in optimizer.param_groups for p in group["params"]]
 
@@ -58,6 +71,7 @@ class Trainer:
         self.model = model
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.lr_scale = 1.0
+        self.background: TrainingBackground | None = None  # chosen at the first step
         self._specs: dict[str, OptimizerSpec] = {}
         self.sync_optimizers()
 
@@ -83,8 +97,10 @@ class Trainer:
     def step(self, data: TrainData, step: int) -> dict[str, float | Tensor]:
         """One training step at 0-based `step` -> the scalars to log."""
         model = self.model
+        if self.background is None:
+            self.background = training_background(model, data)
         model.before_step(data, step)
-        loss, stats = model.training_loss(data, step)
+        loss, stats = model.training_loss(data, step, self.background)
         self.sync_optimizers()  # a model may size or replace parameters in its first steps
         for optimizer in self.optimizers.values():
             optimizer.zero_grad(set_to_none=True)

@@ -21,12 +21,13 @@ class Blowup(Model):
     def __init__(self, bad_step: int, value: float):
         super().__init__()
         self.color = torch.nn.Parameter(torch.zeros(3))
+        self.register_buffer("background", torch.zeros(3))
         self.bad_step, self.value = bad_step, value
 
     def optimizers(self):
         return {}  # its own update, after the backward pass
 
-    def training_loss(self, data, step):
+    def training_loss(self, data, step, background):
         loss = ((self.color - 0.25) ** 2).mean()
         return loss, {"loss": float(loss.detach())}
 

@@ -12,6 +12,7 @@ from recon.models.background import trains_on_random_background
 from recon.models.base import TrainData
 from recon.models.nerf import NeRFModel
 from recon.models.ngp import NGPModel
+from recon.train.trainer import training_background
 from tests.conftest import train_step
 from tests.models.test_nerf import SMALL as NERF_SMALL
 from tests.models.test_ngp import SMALL as NGP_SMALL
@@ -91,9 +92,10 @@ def test_training_on_random_backgrounds_where_the_photos_have_alpha(build):
     data, info, _ = sphere_scene(n_cams=2, size=16)
     with_alpha = TrainData(data.images, data.cameras, torch.ones(data.images.shape[:3]))
     model = build(info, "auto")
-    assert model._random_background(with_alpha) and not model._random_background(data)
+    assert training_background(model, with_alpha).random
+    assert not training_background(model, data).random
     assert math.isfinite(train_step(model, with_alpha, 0)["loss"])
-    assert not build(info, "off")._random_background(with_alpha)
+    assert not training_background(build(info, "off"), with_alpha).random
     with pytest.raises(ValueError, match="must be auto, on or off"):
         build(info, "sometimes")
 

@@ -82,21 +82,22 @@ def test_alpha_follows_the_rays_and_the_levels():
     assert "alpha" not in _data().rays_at(torch.tensor([0]))
 
 
-def test_training_targets_on_random_backgrounds_move_transparent_pixels_onto_their_ray_colour():
+def test_random_training_backgrounds_move_transparent_pixels_onto_their_ray_colour():
     """alpha 0: the target becomes the drawn colour; alpha 1: unchanged; alpha 0.5 on white
     (rgb 0.6 = 0.5 * 0.2 + 0.5): 0.1 + 0.5 * new."""
     import torch
 
-    from recon.models.base import training_targets
+    from recon.models.base import TrainingBackground
 
     batch = {
         "rgb": torch.tensor([[1.0, 1.0, 1.0], [0.3, 0.4, 0.5], [0.6, 0.6, 0.6]]),
         "alpha": torch.tensor([0.0, 1.0, 0.5]),
     }
-    target, new = training_targets(batch, True, torch.ones(3), torch.Generator().manual_seed(0))
+    white = torch.ones(3)
+    target, new = TrainingBackground(white, True).targets(batch, torch.Generator().manual_seed(0))
     assert new.shape == (3, 3) and ((new >= 0) & (new < 1)).all()
     torch.testing.assert_close(target[0], new[0])
     torch.testing.assert_close(target[1], batch["rgb"][1])
     torch.testing.assert_close(target[2], 0.1 + 0.5 * new[2])
-    plain, none = training_targets(batch, False, torch.ones(3), torch.Generator().manual_seed(0))
+    plain, none = TrainingBackground(white).targets(batch, torch.Generator().manual_seed(0))
     assert plain is batch["rgb"] and none is None

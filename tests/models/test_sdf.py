@@ -158,16 +158,20 @@ def test_random_background_where_the_photos_have_alpha():
     """auto: on for training data with alpha and the scene's fixed background, off without
     alpha or with a learned environment; on without alpha is refused; off by default."""
     from recon.models.base import TrainData
+    from recon.train.trainer import training_background
+
+    def random(model, data):
+        return training_background(model, data).random
 
     data, scene, _ = sphere_scene()
     with_alpha = TrainData(data.images, data.cameras, torch.ones(data.images.shape[:3]))
     model = SDFModel(SDFConfig(random_background="auto"), scene)
-    assert model._random_background(with_alpha) and not model._random_background(data)
-    assert not SDFModel(SDFConfig(), scene)._random_background(with_alpha)
+    assert random(model, with_alpha) and not random(model, data)
+    assert not random(SDFModel(SDFConfig(), scene), with_alpha)
     learned = SDFModel(SDFConfig(background="learned", random_background="auto"), scene)
-    assert not learned._random_background(with_alpha)
+    assert learned.learns_background and not random(learned, with_alpha)
     with pytest.raises(ValueError, match="needs training photos with alpha"):
-        SDFModel(SDFConfig(random_background="on"), scene)._random_background(data)
+        random(SDFModel(SDFConfig(random_background="on"), scene), data)
     assert math.isfinite(train_step(model, with_alpha, 0)["loss"])  # on random colours
     for bad in ({"random_background": "maybe"}, {"mask_weight": -0.1}):
         with pytest.raises(ValueError, match="must be"):

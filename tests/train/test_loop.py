@@ -25,13 +25,14 @@ class Toy(Model):
     def __init__(self, poison_steps=()):
         super().__init__()
         self.color = torch.nn.Parameter(torch.zeros(3))
+        self.register_buffer("background", torch.zeros(3))
         self.poison_steps = set(poison_steps)
         self.generator = torch.Generator().manual_seed(0)
 
     def optimizers(self):
         return {"main": OptimizerSpec([ParamGroup("color", [self.color], 0.5)], kind="sgd")}
 
-    def training_loss(self, data, step):
+    def training_loss(self, data, step, background):
         loss = ((self.color - data.images.mean((0, 1, 2))) ** 2).mean()
         if step in self.poison_steps:  # a transient blow-up: happens once
             self.poison_steps.discard(step)

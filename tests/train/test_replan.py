@@ -52,9 +52,9 @@ def test_a_budgeted_loop_hands_the_model_a_shorter_run(monkeypatch):
             super().__init__()
             self.plan = Planned()
 
-        def training_loss(self, data, step):
+        def training_loss(self, data, step, background):
             time.sleep(0.005)
-            return super().training_loss(data, step)
+            return super().training_loss(data, step, background)
 
         def replan(self, schedule_steps, step):
             self.plan.calls.append((schedule_steps, step))

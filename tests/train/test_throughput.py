@@ -112,6 +112,7 @@ class Counting(Model):
 
     def __init__(self, batch: int = 0):
         super().__init__()
+        self.register_buffer("background", torch.zeros(3))
         self.steps, self.batch = [], batch
 
     def step_pixels(self, data):
@@ -120,7 +121,7 @@ class Counting(Model):
     def optimizers(self):
         return {}
 
-    def training_loss(self, data, step):
+    def training_loss(self, data, step, background):
         import time
 
         self.steps.append((step, tuple(data.images.shape[1:3])))
