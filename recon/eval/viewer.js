@@ -16,48 +16,101 @@
   const DISPLAY_WIDTH = 640;  // px: the width a camera's view is drawn at in the page
   const PICK_RADIUS = 12;  // px: how near a click must be to a camera's centre to fly there
 
-  // The compressed PLY's layout (PlayCanvas; `recon.gaussians.splat_formats`): per chunk of
-  // 256 Gaussians 18 float bounds, per Gaussian 4 uint32 (position and log-scale 11-10-11 bit
-  // fractions of the chunk's range, rotation "smallest three", RGBA8 colour) and one byte per
-  // SH coefficient and channel -> the float arrays the exact path carries.
+  // recon's packed layout (`recon.gaussians.splat_pack`, ~16 bytes a Gaussian): gzip of the
+  // chunks' float bounds (the compressed PLY's, per 256 Gaussians in Morton order), then byte
+  // planes per Gaussian: position 11-10-11 bit fractions of its chunk's box, rotation "smallest
+  // three" at 7-7-8 bits under a 2-bit index, log-scale and DC colour 8-bit fractions of the
+  // chunk's ranges, opacity 8 bits, the index of its SH bands in a k-means codebook; then the
+  // codebook as 8-bit fractions of each coefficient's range -> the float arrays the exact path
+  // carries.
   const SH_C0 = 0.28209479177387814;
-  function decompress(s) {
-    const n = s.count, k = s.sh_bases;
-    const chunks = decode(s.chunks, Float32Array), packed = decode(s.packed, Uint32Array);
-    const rest = k > 1 ? decode(s.sh_rest, Uint8Array) : null;
+  const ROTATION_BITS = [7, 7, 8];
+
+  // R diag(s) (R diag(s))^T, upper triangle (xx xy xz yy yz zz), of a unit quaternion wxyz
+  function covariance(q, scale) {
+    const [w, x, y, z] = q;
+    const R = [
+      1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+      2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ];
+    const M = (row, col) => R[3 * row + col] * scale[col];
+    const S = (a, b) => M(a, 0) * M(b, 0) + M(a, 1) * M(b, 1) + M(a, 2) * M(b, 2);
+    return [S(0, 0), S(0, 1), S(0, 2), S(1, 1), S(1, 2), S(2, 2)];
+  }
+
+  function unpack(s, raw) {
+    const n = s.count, k = s.sh_bases, D = 3 * (k - 1);
+    const section = (name) => {
+      const [offset, length] = s.sections[name];
+      return raw.subarray(offset, offset + length);
+    };
+    const floats = (name) => new Float32Array(section(name).slice().buffer);
+    const chunks = floats("chunks");
+    const pos = section("position"), rot = section("rotation");
+    const scl = section("scale"), col = section("colour");
+    const labels = k > 1 ? section("sh_labels") : null, book = k > 1 ? section("sh_codebook") : null;
+    const range = k > 1 ? floats("sh_range") : null;
     const means = new Float32Array(3 * n), cov = new Float32Array(6 * n);
     const opacity = new Float32Array(n), sh = new Float32Array(3 * k * n);
-    const f11 = (v, shift, bits) => ((v >>> shift) & ((1 << bits) - 1)) / ((1 << bits) - 1);
+    const [b0, b1, b2] = ROTATION_BITS;
+    const top = ROTATION_BITS.map((b) => (1 << b) - 1);
     for (let i = 0; i < n; i++) {
       const c = chunks.subarray(18 * (i >> 8), 18 * (i >> 8) + 18);
-      const [p, r, sc, col] = packed.subarray(4 * i, 4 * i + 4);
-      const tp = [f11(p, 21, 11), f11(p, 11, 10), f11(p, 0, 11)];
-      const ts = [f11(sc, 21, 11), f11(sc, 11, 10), f11(sc, 0, 11)];
-      const scale = [0, 1, 2].map((a) => Math.exp(c[6 + a] * (1 - ts[a]) + c[9 + a] * ts[a]));
-      for (let a = 0; a < 3; a++) means[3 * i + a] = c[a] * (1 - tp[a]) + c[3 + a] * tp[a];
-      // rotation: the largest component left out, the others as 10-bit q sqrt(2)/2 + 1/2
-      const three = [(r >>> 20) & 1023, (r >>> 10) & 1023, r & 1023].map((v) => (v / 1023 - 0.5) * Math.SQRT2);
-      const largest = r >>> 30, q = [0, 0, 0, 0];
+      const lerp = (lo, hi, t) => c[lo] * (1 - t) + c[hi] * t;
+      const p = (pos[i] | (pos[n + i] << 8) | (pos[2 * n + i] << 16) | (pos[3 * n + i] << 24)) >>> 0;
+      const tp = [(p >>> 21) / 2047, ((p >>> 11) & 1023) / 1023, (p & 2047) / 2047];
+      for (let a = 0; a < 3; a++) means[3 * i + a] = lerp(a, 3 + a, tp[a]);
+      const scale = [0, 1, 2].map((a) => Math.exp(lerp(6 + a, 9 + a, scl[a * n + i] / 255)));
+      const r = rot[i] | (rot[n + i] << 8) | (rot[2 * n + i] << 16);
+      const three = [(r >>> (b1 + b2)) & top[0], (r >>> b2) & top[1], r & top[2]].map(
+        (v, j) => (v / top[j] - 0.5) * Math.SQRT2);
+      const largest = r >>> (b0 + b1 + b2), q = [0, 0, 0, 0];
       q[largest] = Math.sqrt(Math.max(0, 1 - three[0] ** 2 - three[1] ** 2 - three[2] ** 2));
       for (let a = 0, j = 0; a < 4; a++) if (a !== largest) q[a] = three[j++];
-      const [w, x, y, z] = q;
-      const R = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-      ];
-      const M = (row, col) => R[3 * row + col] * scale[col];  // R diag(s): Sigma = M M^T
-      const S = (a, b) => M(a, 0) * M(b, 0) + M(a, 1) * M(b, 1) + M(a, 2) * M(b, 2);
-      cov.set([S(0, 0), S(0, 1), S(0, 2), S(1, 1), S(1, 2), S(2, 2)], 6 * i);
-      const rgba = [(col >>> 24) & 255, (col >>> 16) & 255, (col >>> 8) & 255, col & 255].map((v) => v / 255);
-      opacity[i] = rgba[3];
+      cov.set(covariance(q, scale), 6 * i);
+      opacity[i] = col[3 * n + i] / 255;
       for (let a = 0; a < 3; a++)
-        sh[3 * k * i + a] = (c[12 + a] * (1 - rgba[a]) + c[15 + a] * rgba[a] - 0.5) / SH_C0;
-      for (let a = 0; a < 3; a++)
-        for (let j = 1; j < k; j++)
-          sh[3 * (k * i + j) + a] = rest[3 * (k - 1) * i + a * (k - 1) + (j - 1)] * (8 / 255) - 4;
+        sh[3 * k * i + a] = (lerp(12 + a, 15 + a, col[a * n + i] / 255) - 0.5) / SH_C0;
+      if (k > 1) {
+        const entry = (labels[i] | (labels[n + i] << 8)) * D;
+        for (let d = 0; d < D; d++)  // coefficient d = 3 (band - 1) + channel
+          sh[3 * k * i + 3 + d] = range[d] + (book[entry + d] / 255) * (range[D + d] - range[d]);
+      }
     }
     return { means, cov, opacity, sh, intervals: null };
+  }
+
+  // The packed bytes: a string of the scene script, read with charset="x-user-defined" (every
+  // byte one character, 0x80-0xFF as U+F780-U+F7FF); a server that forces another charset
+  // garbles it, and then the script itself is fetched and its string read byte by byte.
+  async function packedBytes(s, src) {
+    const text = s.bytes || "";
+    if (text.length === s.bytes_length) {
+      const out = new Uint8Array(text.length);
+      for (let i = 0; i < text.length; i++) out[i] = text.charCodeAt(i) & 255;
+      return out;
+    }
+    if (!/^https?:$/.test(location.protocol) || !src)
+      throw new Error("the scene's packed Gaussians did not load intact (open the page with recon view)");
+    const file = new Uint8Array(await (await fetch(src)).arrayBuffer());
+    const marker = new TextEncoder().encode('.bytes = "');
+    let i = 0;
+    search: for (; i <= file.length - marker.length; i++) {
+      for (let j = 0; j < marker.length; j++) if (file[i + j] !== marker[j]) continue search;
+      break;
+    }
+    const out = new Uint8Array(s.bytes_length), escaped = { 110: 10, 114: 13, 34: 34, 92: 92 };
+    let n = 0;
+    for (i += marker.length; i < file.length && file[i] !== 34; i++)
+      out[n++] = file[i] === 92 ? escaped[file[++i]] : file[i];
+    if (n !== s.bytes_length) throw new Error("the scene's packed Gaussians are damaged");
+    return out;
+  }
+
+  async function gunzip(bytes) {
+    const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("gzip"));
+    return new Uint8Array(await new Response(stream).arrayBuffer());
   }
 
   function decode(b64, Type) {
@@ -329,7 +382,7 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       this.count = s ? s.count : 0;
       if (!this.count) return;
       const gl = this.gl;
-      const { means, cov, opacity, sh, intervals } = s.encoding === "compressed" ? decompress(s) : {
+      const { means, cov, opacity, sh, intervals } = s.encoding === "pack" ? s.decoded : {
         means: decode(s.means, Float32Array),
         cov: decode(s.cov, Float32Array),
         opacity: decode(s.opacity, Float32Array),
@@ -700,10 +753,26 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
     }
   }
 
+  // a packed scene's Gaussians decoded (asynchronously: the browser's gunzip) before its viewer
+  async function prepare(root) {
+    const scene = (window.RECON_VIEWS || {})[root.dataset.view];
+    const s = scene && scene.splats;
+    if (s && s.encoding === "pack" && !s.decoded)
+      s.decoded = unpack(s, await gunzip(await packedBytes(s, root.dataset.src)));
+  }
+
   window.reconViewers = {};
-  function start() {
-    for (const root of document.querySelectorAll(".recon-viewer"))
+  async function start() {
+    await Promise.all([...document.querySelectorAll(".recon-viewer")].map(async (root) => {
+      try {
+        await prepare(root);
+      } catch (e) {
+        root.querySelector(".recon-status").textContent = `3D view unavailable: ${e.message}`;
+        window.reconViewers[root.dataset.view] = null;
+        return;
+      }
       window.reconViewers[root.dataset.view] = build(root);
+    }));
     window.reconViewersReadyMs = performance.now();  // since the page began to load
     window.reconViewersReady = true;
   }

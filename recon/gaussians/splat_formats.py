@@ -143,25 +143,35 @@ def _unpack_111011(bits: np.ndarray) -> np.ndarray:
     )
 
 
-def pack_rotation(quats: np.ndarray) -> np.ndarray:
-    """(G, 4) wxyz -> (G,) uint32 "smallest three": the index of the largest |component| in
-    the top 2 bits, the other three (sign chosen so the largest is positive) as 10-bit
-    q sqrt(2)/2 + 1/2 in order."""
+def pack_rotation(quats: np.ndarray, widths: tuple[int, int, int] = (10, 10, 10)) -> np.ndarray:
+    """(G, 4) wxyz -> (G,) uint32 "smallest three": the index of the largest |component|
+    above the rest, then the other three (sign chosen so the largest is positive) as
+    q sqrt(2)/2 + 1/2 in order, on `widths` bits each (the compressed PLY's 10-10-10: 32 bits).
+    """
     q = unit_quats(quats)
     largest = np.abs(q).argmax(1)
     q = q * np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
     out = largest.astype(np.uint32)
+    slot = np.zeros(len(q), np.int64)  # which of the three a component of row g is
     for i in range(4):
         keep = largest != i
-        out = np.where(keep, (out << 10) | _unorm(q[:, i] * np.sqrt(0.5) + 0.5, 10), out)
+        width = np.asarray(widths)[np.minimum(slot, 2)]
+        top = (1 << width) - 1
+        value = np.clip(np.floor((q[:, i] * np.sqrt(0.5) + 0.5) * top + 0.5), 0, top)
+        out = np.where(keep, (out << width.astype(np.uint32)) | value.astype(np.uint32), out)
+        slot += keep
     return out.astype(np.uint32)
 
 
-def unpack_rotation(bits: np.ndarray) -> np.ndarray:
+def unpack_rotation(bits: np.ndarray, widths: tuple[int, int, int] = (10, 10, 10)) -> np.ndarray:
     """Inverse of `pack_rotation`: (G,) uint32 -> (G, 4) wxyz (unit to the quantisation)."""
-    three = np.stack([(bits >> s) & 0x3FF for s in (20, 10, 0)], -1) / 1023.0
+    bits = np.asarray(bits, np.uint32)
+    shifts = (widths[1] + widths[2], widths[2], 0)
+    three = np.stack(
+        [((bits >> s) & ((1 << w) - 1)) / ((1 << w) - 1) for s, w in zip(shifts, widths)], -1
+    )
     three = (three - 0.5) * np.sqrt(2.0)
-    largest = (bits >> 30).astype(np.int64)
+    largest = (bits >> sum(widths)).astype(np.int64)
     m = np.sqrt(np.clip(1.0 - (three**2).sum(1), 0, None))
     q = np.empty((len(bits), 4))
     for mode in range(4):

@@ -59,12 +59,13 @@ def recon_render(g: dict, camera: Cameras, terms: dict) -> np.ndarray:
     return out["rgb"].clamp(0, 1).numpy()
 
 
-def browser_render(folder, doc: dict) -> tuple[np.ndarray, dict]:
+def browser_render(folder, doc: dict, url: str = "") -> tuple[np.ndarray, dict]:
     """The viewer's image of `doc`'s first camera (cameras and points hidden) -> (H, W, 3) in
-    [0, 1] and what the page said (console errors, status line, load time)."""
+    [0, 1] and what the page said (console errors, status line, load time); the page is
+    written into `folder` and opened from there, or from `url` (a server of that folder)."""
     page = write_page(folder, "scene", doc)
     with chromium_driver(webgl=True) as driver:
-        driver.get(page.as_uri())
+        driver.get(url or page.as_uri())
         deadline = time.time() + 20
         while not driver.execute_script("return window.reconViewersReady === true"):
             assert time.time() < deadline, "the viewer never started"
@@ -78,6 +79,10 @@ def browser_render(folder, doc: dict) -> tuple[np.ndarray, dict]:
             "errors": console_errors(driver),
             "status": status,
             "ready_ms": driver.execute_script("return window.reconViewersReadyMs"),
+            "string_intact": driver.execute_script(
+                "const s = window.RECON_VIEWS.scene.splats;"
+                "return s.bytes === undefined || s.bytes.length === s.bytes_length"
+            ),
         }
     assert url is not None, seen
     png = base64.b64decode(url.split(",", 1)[1])
@@ -122,20 +127,23 @@ def test_the_viewer_draws_what_recon_renders(tmp_path, size, degree, antialiased
     assert value >= 40.0, (value, seen)
 
 
-def test_compressed_gaussians_are_drawn_as_they_decode(tmp_path):
-    """A large run travels in the compressed PLY's layout: the viewer's decoding (in JS) and
-    `read_compressed_ply`'s (in numpy) give the same Gaussians, so the same image."""
-    from recon.gaussians.splat_formats import read_compressed_ply, write_compressed_ply
+def test_packed_gaussians_are_drawn_as_they_decode(tmp_path):
+    """A large run travels packed (`splat_pack`), its bytes a string of the scene script: the
+    viewer's decoding (gunzip and unpacking in JS) and `unpack_splats`' (numpy) give the same
+    Gaussians, so the same image, from file:// and from a web server alike."""
+    import functools
+    import http.server
+    import threading
 
-    g = random_gaussians(600, seed=3)
+    from recon.gaussians.splat_pack import unpack_splats
+
+    g = random_gaussians(700, seed=3)
     camera = view_camera(96, 72)
     terms = {"sh_degree": 3, "antialiased": False, "background": [0.1, 0.2, 0.3], "near": 0.01,
              "intervals": None}  # fmt: skip
     entry = splat_entry(g, terms, exact_max=0)
-    assert entry["encoding"] == "compressed" and "means" not in entry
-    write_compressed_ply(tmp_path / "g.ply", g["means"], g["quats"], g["log_scales"],
-                         g["opacity_logits"], g["sh"])  # fmt: skip
-    decoded = read_compressed_ply(tmp_path / "g.ply")
+    assert entry["encoding"] == "pack" and "means" not in entry
+    decoded = unpack_splats(entry, entry["bytes"])
     doc = {
         "cameras": [camera_entry(camera, "view", "test")],
         "splats": entry,
@@ -144,11 +152,34 @@ def test_compressed_gaussians_are_drawn_as_they_decode(tmp_path):
         "centre": [0.0, 0.0, 0.0],
         "frustum_size": 0.1,
     }
-    seen_image, seen = browser_render(tmp_path / "page", doc)
     expected = recon_render(decoded, camera, terms)
-    assert seen["errors"] == [], seen
+    seen_image, seen = browser_render(tmp_path / "page", doc)
+    assert seen["errors"] == [] and seen["string_intact"], seen
     value = float(psnr(torch.from_numpy(seen_image), torch.from_numpy(expected)))
     assert value >= 40.0, value
+
+    class Utf8Scripts(http.server.SimpleHTTPRequestHandler):
+        """A server that calls every script UTF-8 (as some do): the string arrives garbled,
+        and the viewer reads the script's bytes itself."""
+
+        def guess_type(self, path):
+            kind = super().guess_type(path)
+            return f"{kind}; charset=utf-8" if str(path).endswith(".js") else kind
+
+        def log_message(self, *args):
+            pass
+
+    handler = functools.partial(Utf8Scripts, directory=str(tmp_path / "page"))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/index.html"
+        served, seen = browser_render(tmp_path / "page", doc, url=url)
+    finally:
+        server.shutdown()
+    assert not seen["string_intact"]  # garbled by the charset: read from the script's bytes
+    assert [e for e in seen["errors"] if "favicon.ico" not in e] == [], seen
+    assert float(psnr(torch.from_numpy(served), torch.from_numpy(expected))) >= 40.0
 
 
 def test_a_click_on_a_camera_flies_to_it(tmp_path):
