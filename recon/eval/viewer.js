@@ -448,9 +448,14 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       this.points = this._lineBuffer(decode(p.xyz, Float32Array), colors);
     }
 
-    _loadMesh() {
-      const m = this.scene.mesh;
-      if (!m) return;
+    _loadMesh() { // the run's mesh (a method without splats), and `recon mvs`'s when there is one
+      this.mesh = this._meshBuffer(this.scene.mesh);
+      this.mvsMesh = this._meshBuffer(this.scene.mvs_mesh);
+      this.showMvs = Boolean(this.mvsMesh) && !this.mesh && !this.count;
+    }
+
+    _meshBuffer(m) {
+      if (!m) return null;
       const gl = this.gl, rgb = decode(m.rgb, Uint8Array), colors = new Float32Array(rgb.length);
       for (let i = 0; i < rgb.length; i++) colors[i] = rgb[i] / 255;
       const mesh = this._lineBuffer(decode(m.xyz, Float32Array), colors);
@@ -459,7 +464,7 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
       gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, faces, gl.STATIC_DRAW);
       gl.bindVertexArray(null);
-      this.mesh = { vao: mesh.vao, count: faces.length };
+      return { vao: mesh.vao, count: faces.length };
     }
 
     // the view: cam_from_world (row-major, OpenCV), intrinsics and size in pixels. A camera's
@@ -569,14 +574,17 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       gl.clearColor(bg[0], bg[1], bg[2], 1);
       gl.clearDepth(1);
       gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-      if (this.mesh) {
+      const meshes = [this.mesh, this.showMvs ? this.mvsMesh : null].filter(Boolean);
+      if (meshes.length) {
         const p = this.programs.mesh;
         gl.useProgram(p);
         this._uniforms(p, view);
         gl.uniform1f(gl.getUniformLocation(p, "uFar"), s.far || 100);
         gl.enable(gl.DEPTH_TEST);
-        gl.bindVertexArray(this.mesh.vao);
-        gl.drawElements(gl.TRIANGLES, this.mesh.count, gl.UNSIGNED_INT, 0);
+        for (const mesh of meshes) {
+          gl.bindVertexArray(mesh.vao);
+          gl.drawElements(gl.TRIANGLES, mesh.count, gl.UNSIGNED_INT, 0);
+        }
         gl.disable(gl.DEPTH_TEST);
       }
       if (this.count) {
@@ -738,13 +746,17 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         viewer.target = viewer._sceneCentre();
         viewer.setCamera(Number(list.value));
       });
-      for (const [cls, key] of [[".recon-show-cameras", "showCameras"], [".recon-show-points", "showPoints"]]) {
+      const mvs = root.querySelector(".recon-mvs");
+      if (mvs && !viewer.mvsMesh) mvs.style.display = "none";
+      for (const [cls, key] of [[".recon-show-cameras", "showCameras"], [".recon-show-points", "showPoints"],
+        [".recon-show-mvs", "showMvs"]]) {
         const box = root.querySelector(cls);
         if (!box) continue;
         box.checked = viewer[key];
         box.addEventListener("change", () => { viewer[key] = box.checked; viewer.render(); });
       }
-      status.textContent = `${viewer.count ? viewer.count + " Gaussians" : "mesh"}, ` +
+      const what = viewer.count ? `${viewer.count} Gaussians` : viewer.mesh ? "mesh" : viewer.mvsMesh ? "mvs mesh" : "cameras";
+      status.textContent = `${what}, ` +
         `${scene.cameras.length} cameras; drag to orbit, right-drag to pan, wheel to zoom`;
       return viewer;
     } catch (e) {

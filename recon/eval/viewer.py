@@ -141,14 +141,13 @@ def points_entry(scene) -> dict | None:
     return {"xyz": b64(p[::step], "<f4"), "rgb": b64(c[::step], "u1")}
 
 
-def mesh_entry(ws: Workspace, run: str, scene) -> dict | None:
-    """The run's mesh (`recon mesh`, original units) in the normalized frame, with vertex
-    colours (grey where it has none)."""
+def mesh_entry(path: Path, scene) -> dict | None:
+    """The mesh at `path` (original units: `recon mesh`, `recon mvs`) in the normalized frame,
+    with vertex colours (grey where it has none); None when it is missing, empty or larger
+    than MAX_FACES."""
     import trimesh
 
-    paths = [ws.mesh_dir(run) / f"mesh.{ext}" for ext in ("ply", "glb", "obj")]
-    path = next((p for p in paths if p.exists()), None)
-    if path is None:
+    if not path.exists():
         return None
     mesh = trimesh.load(str(path), process=False, force="mesh")
     faces = np.asarray(mesh.faces)
@@ -162,6 +161,12 @@ def mesh_entry(ws: Workspace, run: str, scene) -> dict | None:
         else np.full((len(xyz), 3), 180, np.uint8)
     )
     return {"xyz": b64(xyz, "<f4"), "rgb": b64(rgb, "u1"), "faces": b64(faces, "<u4")}
+
+
+def run_mesh(ws: Workspace, run: str) -> Path:
+    """The run's mesh from `recon mesh` (PLY, GLB or OBJ; the PLY's path when there is none)."""
+    paths = [ws.mesh_dir(run) / f"mesh.{ext}" for ext in ("ply", "glb", "obj")]
+    return next((p for p in paths if p.exists()), paths[0])
 
 
 def viewer_scene(ws: Workspace, run: str, page_dir: Path) -> dict:
@@ -184,7 +189,8 @@ def viewer_scene(ws: Workspace, run: str, page_dir: Path) -> dict:
         doc["splats"] = splat_entry(model.splats(), terms)
         doc["background"], doc["near"] = terms["background"], terms["near"]
     else:
-        doc["mesh"] = mesh_entry(ws, run, scene)
+        doc["mesh"] = mesh_entry(run_mesh(ws, run), scene)
+    doc["mvs_mesh"] = mesh_entry(ws.mvs_mesh, scene)  # `recon mvs`'s, shown on request
     return doc
 
 
@@ -223,6 +229,7 @@ def viewer_html(name: str, scene_src: str, root: str = "") -> str:
         '<button class="recon-reset">Reset</button> '
         '<label><input type="checkbox" class="recon-show-cameras"> cameras</label> '
         '<label><input type="checkbox" class="recon-show-points"> sfm points</label> '
+        '<label class="recon-mvs"><input type="checkbox" class="recon-show-mvs"> mvs mesh</label> '
         '<span class="recon-label"></span> <span class="recon-status">loading the 3D view…</span>'
         '</div><canvas></canvas><img class="recon-photo" alt="the camera\'s photo"></div>'
         f'<script src="{html.escape(scene_src)}" charset="x-user-defined"></script>'

@@ -239,3 +239,62 @@ def test_a_page_without_its_scene_says_so(tmp_path):
         errors = console_errors(driver)
     assert status.startswith("3D view unavailable: no scene scene")
     assert all("scene.js" in e for e in errors)  # the missing file, nothing else
+
+
+def test_the_mvs_mesh_is_drawn_where_it_is_and_on_request(tmp_path):
+    """`recon mvs`'s mesh: shown at first where there is nothing else to show (a red box at
+    the origin, in the middle of a camera that looks at it), hidden and shown again by its
+    checkbox; a page without one has no such checkbox."""
+    from recon.eval.viewer import b64
+
+    camera = view_camera(96, 72)
+    corners = np.array([[x, y, z] for x in (-0.2, 0.2) for y in (-0.2, 0.2) for z in (-0.2, 0.2)])
+    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])  # fmt: skip
+    doc = {
+        "cameras": [camera_entry(camera, "view", "test")],
+        "mvs_mesh": {
+            "xyz": b64(corners, "<f4"),
+            "rgb": b64(np.tile([[255, 0, 0]], (8, 1)), "u1"),
+            "faces": b64(faces, "<u4"),
+        },
+        "background": [1.0, 1.0, 1.0],
+        "near": 0.01,
+        "centre": [0.0, 0.0, 0.0],
+        "frustum_size": 0.05,
+    }
+    p = camera.cam_from_world[0] @ torch.tensor([0.0, 0.0, 0.0, 1.0])  # the box's centre
+    u = round(float(camera.K[0, 0, 0] * p[0] / p[2] + camera.K[0, 0, 2]))
+    v = round(float(camera.K[0, 1, 1] * p[1] / p[2] + camera.K[0, 1, 2]))
+
+    def centre_pixel(driver) -> list[int]:
+        driver.execute_script("const w = window.reconViewers.scene; w.setCamera(0, true);")
+        url = driver.execute_script("return window.reconViewers.scene.snapshot()")
+        png = base64.b64decode(url.split(",", 1)[1])
+        return list(np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))[v, u])
+
+    page = write_page(tmp_path / "page", "scene", doc)
+    with chromium_driver(webgl=True) as driver:
+        driver.get(page.as_uri())
+        deadline = time.time() + 20
+        while not driver.execute_script("return window.reconViewersReady === true"):
+            assert time.time() < deadline
+            time.sleep(0.05)
+        shown = centre_pixel(driver)
+        driver.find_element("css selector", ".recon-show-mvs").click()
+        hidden = centre_pixel(driver)
+        errors = console_errors(driver)
+    assert shown[0] > 100 and shown[1] < 60 and shown[2] < 60, shown  # red, shaded
+    assert hidden == [255, 255, 255]
+    assert errors == []
+    without = write_page(tmp_path / "plain", "scene", {**doc, "mvs_mesh": None})
+    with chromium_driver(webgl=True) as driver:
+        driver.get(without.as_uri())
+        deadline = time.time() + 20
+        while not driver.execute_script("return window.reconViewersReady === true"):
+            assert time.time() < deadline
+            time.sleep(0.05)
+        display = driver.execute_script(
+            "return getComputedStyle(document.querySelector('.recon-mvs')).display"
+        )
+    assert display == "none"
