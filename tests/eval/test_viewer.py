@@ -59,6 +59,13 @@ def recon_render(g: dict, camera: Cameras, terms: dict) -> np.ndarray:
     return out["rgb"].clamp(0, 1).numpy()
 
 
+def wait_until_ready(driver, seconds: float = 20.0) -> None:
+    deadline = time.time() + seconds
+    while not driver.execute_script("return window.reconViewersReady === true"):
+        assert time.time() < deadline, "the viewer never started"
+        time.sleep(0.05)
+
+
 def browser_render(folder, doc: dict, url: str = "") -> tuple[np.ndarray, dict]:
     """The viewer's image of `doc`'s first camera (cameras and points hidden) -> (H, W, 3) in
     [0, 1] and what the page said (console errors, status line, load time); the page is
@@ -66,10 +73,7 @@ def browser_render(folder, doc: dict, url: str = "") -> tuple[np.ndarray, dict]:
     page = write_page(folder, "scene", doc)
     with chromium_driver(webgl=True) as driver:
         driver.get(url or page.as_uri())
-        deadline = time.time() + 20
-        while not driver.execute_script("return window.reconViewersReady === true"):
-            assert time.time() < deadline, "the viewer never started"
-            time.sleep(0.05)
+        wait_until_ready(driver)
         status = driver.execute_script("return document.querySelector('.recon-status').textContent")
         url = driver.execute_script(
             "const v = window.reconViewers.scene; if (!v) return null;"
@@ -210,10 +214,7 @@ def test_a_click_on_a_camera_flies_to_it(tmp_path):
     page = write_page(tmp_path / "page", "scene", doc)
     with chromium_driver(webgl=True) as driver:
         driver.get(page.as_uri())
-        deadline = time.time() + 20
-        while not driver.execute_script("return window.reconViewersReady === true"):
-            assert time.time() < deadline
-            time.sleep(0.05)
+        wait_until_ready(driver)
         driver.execute_script("window.reconViewers.scene.setCamera(0, true)")
         picked = driver.execute_script(f"return window.reconViewers.scene.pickCamera({u}, {v})")
         nothing = driver.execute_script("return window.reconViewers.scene.pickCamera(2, 2)")
@@ -276,10 +277,7 @@ def test_the_mvs_mesh_is_drawn_where_it_is_and_on_request(tmp_path):
     page = write_page(tmp_path / "page", "scene", doc)
     with chromium_driver(webgl=True) as driver:
         driver.get(page.as_uri())
-        deadline = time.time() + 20
-        while not driver.execute_script("return window.reconViewersReady === true"):
-            assert time.time() < deadline
-            time.sleep(0.05)
+        wait_until_ready(driver)
         shown = centre_pixel(driver)
         driver.find_element("css selector", ".recon-show-mvs").click()
         hidden = centre_pixel(driver)
@@ -290,10 +288,7 @@ def test_the_mvs_mesh_is_drawn_where_it_is_and_on_request(tmp_path):
     without = write_page(tmp_path / "plain", "scene", {**doc, "mvs_mesh": None})
     with chromium_driver(webgl=True) as driver:
         driver.get(without.as_uri())
-        deadline = time.time() + 20
-        while not driver.execute_script("return window.reconViewersReady === true"):
-            assert time.time() < deadline
-            time.sleep(0.05)
+        wait_until_ready(driver)
         display = driver.execute_script(
             "return getComputedStyle(document.querySelector('.recon-mvs')).display"
         )
