@@ -25,7 +25,7 @@ import click
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # tests.browser: the headless chromium of the browser tests
 
-from recon.eval.viewer import run_page
+from recon.eval.viewer import run_page, scene_doc
 from recon.io.atomic import atomic_write_json
 from recon.workspace import Workspace, atomic_write_text
 
@@ -88,7 +88,7 @@ def main(workspace, run, size, frames, out_dir):
     width, height = (int(x) for x in size.split("x"))
     page = run_page(ws, run)
     script = page.parent / f"{run}.js"
-    doc = json.loads(script.read_text().splitlines()[1].split(" = ", 1)[1].rstrip(";"))
+    doc = scene_doc(script)
     count = doc["splats"]["count"] if "splats" in doc else 0
     result = {
         "workspace": str(ws.root),

@@ -382,6 +382,8 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       this.count = s ? s.count : 0;
       if (!this.count) return;
       const gl = this.gl;
+      if (s.encoding !== "pack" && s.encoding !== "float32")
+        throw new Error(`a scene of another recon (${s.encoding}): run recon eval again`);
       const { means, cov, opacity, sh, intervals } = s.encoding === "pack" ? s.decoded : {
         means: decode(s.means, Float32Array),
         cov: decode(s.cov, Float32Array),

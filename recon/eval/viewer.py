@@ -41,6 +41,9 @@ EXACT_GAUSSIANS = 60_000
 MAX_GAUSSIANS = 600_000  # the most visible (opacity times volume) of a run that has more
 MAX_POINTS = 100_000  # sfm points shown (an even subsample of more)
 MAX_FACES = 300_000  # mesh faces shown (a mesh with more is left out, with a note)
+# The scene scripts' layout, in every doc: a viewer.js reads the scenes of its own format (2:
+# large runs packed, `splat_pack`); a scene of another is written again before it is shown
+SCENE_FORMAT = 2
 
 
 def b64(array: np.ndarray, dtype) -> str:
@@ -174,6 +177,7 @@ def viewer_scene(ws: Workspace, run: str, page_dir: Path) -> dict:
     model, scene, run_doc = load_run(ws, run, "cpu")
     level = output_levels(scene, run_doc)[1]
     doc = {
+        "format": SCENE_FORMAT,
         "run": run,
         "method": run_doc.get("method", ""),
         "cameras": camera_entries(ws, scene, level, page_dir),
@@ -265,16 +269,28 @@ def write_viewer(ws: Workspace, run: str) -> Path:
     return write_scene_script(folder, run, viewer_scene(ws, run, ws.report_html.parent))
 
 
+def scene_doc(script: Path) -> dict | None:
+    """The scene doc a scene script holds (without packed bytes), or None when unreadable."""
+    try:
+        with open(script, "rb") as f:
+            f.readline()
+            line = f.readline().decode("ascii")
+        return json.loads(line.split(" = ", 1)[1].rstrip().rstrip(";"))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def run_page(ws: Workspace, run: str) -> Path:
     """WS/viewer/<run>.html, the run's 3D view on a page of its own (`recon view --run`); its
-    scene is written again when the model is newer than it."""
+    scene is written again when the model is newer than it or it is of another format."""
     folder = ws.report_html.parent / "viewer"
     script = folder / f"{run}.js"
     model = ws.model_path(run)
     page = folder / f"{run}.html"
     if not model.exists():  # load_run says why (no such run, or not trained yet)
         load_run(ws, run, "cpu")
-    if script.exists() and page.exists() and script.stat().st_mtime >= model.stat().st_mtime:
+    fresh = script.exists() and script.stat().st_mtime >= model.stat().st_mtime
+    if fresh and page.exists() and (scene_doc(script) or {}).get("format") == SCENE_FORMAT:
         shutil.copyfile(VIEWER_JS, folder / "viewer.js")  # this recon's viewer, whatever wrote it
         return page
     doc = viewer_scene(ws, run, ws.report_html.parent)

@@ -293,3 +293,21 @@ def test_the_mvs_mesh_is_drawn_where_it_is_and_on_request(tmp_path):
             "return getComputedStyle(document.querySelector('.recon-mvs')).display"
         )
     assert display == "none"
+
+
+def test_a_scene_script_keeps_its_doc_readable_beside_packed_bytes(tmp_path):
+    """The doc is the script's second line (ASCII JSON), the packed bytes a third: read back
+    without them, with the format a viewer.js checks before reusing a scene."""
+    from recon.eval.viewer import SCENE_FORMAT, scene_doc, write_scene_script
+
+    terms = {"sh_degree": 3, "antialiased": False, "background": [0.0, 0.0, 0.0], "near": 0.01,
+             "intervals": None}  # fmt: skip
+    entry = splat_entry(random_gaussians(300), terms, exact_max=0)
+    doc = {"format": SCENE_FORMAT, "cameras": [], "splats": entry}
+    script = write_scene_script(tmp_path, "scene", doc)
+    back = scene_doc(script)
+    assert back["format"] == SCENE_FORMAT and "bytes" not in back["splats"]
+    assert back["splats"]["bytes_length"] == len(entry["bytes"])
+    assert script.read_bytes().count(b"\n") == 3  # no raw line feed inside the string
+    (tmp_path / "broken.js").write_bytes(b"\xff\xfe")
+    assert scene_doc(tmp_path / "broken.js") is None
