@@ -311,3 +311,33 @@ def test_a_scene_script_keeps_its_doc_readable_beside_packed_bytes(tmp_path):
     assert script.read_bytes().count(b"\n") == 3  # no raw line feed inside the string
     (tmp_path / "broken.js").write_bytes(b"\xff\xfe")
     assert scene_doc(tmp_path / "broken.js") is None
+
+
+def test_a_mesh_travels_in_the_scene_frame_with_its_colours(tmp_path, monkeypatch):
+    """`mesh_entry`: a PLY in original units -> the normalized frame (x_scene = s R x + t),
+    its vertex colours (grey without); nothing for a missing mesh or one over MAX_FACES."""
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from recon.cameras.similarity import Similarity
+    from recon.eval import viewer
+
+    scene = SimpleNamespace(scene_from_world=Similarity(2.0, np.eye(3), np.array([1.0, 0, 0])))
+    box = trimesh.creation.box()
+    box.export(tmp_path / "grey.ply")
+    entry = viewer.mesh_entry(tmp_path / "grey.ply", scene)
+    xyz = np.frombuffer(base64.b64decode(entry["xyz"]), "<f4").reshape(-1, 3)
+    np.testing.assert_allclose(xyz, 2.0 * box.vertices + [1.0, 0, 0], atol=1e-6)
+    faces = np.frombuffer(base64.b64decode(entry["faces"]), "<u4").reshape(-1, 3)
+    assert (faces == box.faces).all()
+    assert set(base64.b64decode(entry["rgb"])) <= {180, 102}  # grey (trimesh's own, or ours)
+    box.visual.vertex_colors = np.tile([[10, 20, 30, 255]], (len(box.vertices), 1))
+    box.export(tmp_path / "coloured.ply")
+    rgb = np.frombuffer(
+        base64.b64decode(viewer.mesh_entry(tmp_path / "coloured.ply", scene)["rgb"]), "u1"
+    )
+    assert (rgb.reshape(-1, 3) == [10, 20, 30]).all()
+    assert viewer.mesh_entry(tmp_path / "missing.ply", scene) is None
+    monkeypatch.setattr(viewer, "MAX_FACES", 5)
+    assert viewer.mesh_entry(tmp_path / "grey.ply", scene) is None
