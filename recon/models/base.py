@@ -368,6 +368,10 @@ class ResolutionPolicy:
     # passes are counted over at most this many views (0: all of them): beyond them a capture's
     # views overlap, and more of them add viewpoints of the same surfaces, not more to fit
     epoch_views: int = 0
+    # ... or over at most this many (0: epoch_views) at a level whose photos hold detail the
+    # next coarser level lacks (`train.resolution.DETAIL_DB`): a finer level there is worth
+    # fewer passes, since what it adds is what a render at the photos' size shows
+    detail_views: int = 0
     max_side: int = 1600  # longest image side trained on without a time budget
     # The step plan (`planned_steps`, which lays out the step schedules) may take a step's time
     # as affine in its pixels instead: step_overhead_s + pixels / step_pixels_per_s

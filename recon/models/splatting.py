@@ -600,6 +600,12 @@ RESOLUTION = ResolutionPolicy(
     # (spiral-300, 262 views, 10 min: 1/7) where the reference trains 30,000 steps whatever
     # the number of views
     epoch_views=100,
+    # detailed photos (each pyramid level holds detail the next lacks): 50 views, about
+    # fox's 58, so that a many-photo capture trains at the level an ordinary one would; on
+    # spiral-300 (262 views of 800 x 600, 29 dB detail) 30 minutes at full size scored 0.95 dB
+    # over the 1/2 of 100 views at the photos' size, where on fox (42 dB: smooth phone
+    # photos) 1/2 instead of 1/3 gained nothing (bench/results/2026-11-29-spiral-30min-level.md)
+    detail_views=50,
     max_side=1600,
     step_overhead_s=0.05,
     step_pixels_per_s=1.0e6,

@@ -8,17 +8,23 @@ through R training pixels a second (`ResolutionPolicy.pixels_per_s` at the devic
 of W_K x H_K pixels; a --steps run makes steps * pixels_per_step of them. The chosen level is
 the finest one that still gives `min_epochs`, never finer than `max_side` on the longer side and
 never coarser than `MIN_SIDE` (INRIA's 3DGS and nerfstudio cap photos at ~1.6k px in the same
-spirit, with no budget in the rule).
+spirit, with no budget in the rule). A finer level than that is taken where the photos hold
+detail there (`photo_detail`: the level against the next coarser one upsampled, under
+`DETAIL_DB`) and `policy.detail_views` passes are still made: training finer pays only in what
+a finer render shows, which smooth photos (a phone's, fox's) lack and crisp ones have.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
 
+from recon.io.images import resize_area
 from recon.models.base import MethodSpec, ResolutionPolicy, TrainData
 from recon.train.config import TrainConfig
 from recon.train.throughput import (
@@ -39,6 +45,11 @@ from recon.workspace import Workspace
 from recon.workspace.scene import Scene, level_size, load_images_and_alpha
 
 MIN_SIDE = 128  # the automatic choice never trains on a longer side below this
+# A pyramid level whose photos its next coarser level, upsampled (bicubic), reproduces to less
+# than this PSNR holds detail a render at the photos' size shows (fox's phone photos: 42 dB at
+# 1/2 against 1/3; spiral-300's crisp texture: 29 dB at full size against 1/2; llff_flower 38)
+DETAIL_DB = 35.0
+DETAIL_VIEWS = 4  # training views the photos' detail is measured on (evenly spaced)
 
 
 @dataclass(frozen=True)
@@ -128,6 +139,7 @@ def choose_resolution(
     speed: Speed = REFERENCE,
     max_side: int = 0,
     downscale: int = 0,
+    detail: Callable[[int], float] | None = None,
 ) -> WorkingResolution:
     """The working resolution for C = n_views training images of width x height (the sfm size).
 
@@ -137,6 +149,9 @@ def choose_resolution(
     decides.
     Example: fox, 58 views of 1076 x 1913, 3dgs (350k px/s, 30 epochs), 600 s at the reference
     speed -> K = 5 (215 x 382: 44 epochs; K = 4 would give 28).
+    With `detail` (level -> `photo_detail` of the photos there) and a policy's `detail_views`,
+    a finer level is taken while its photos hold detail (under DETAIL_DB) and the passes
+    counted over detail_views views still reach min_epochs.
     """
 
     def result(k: int, source: str, reason: str) -> WorkingResolution:
@@ -179,6 +194,31 @@ def choose_resolution(
         f"{budget} at ~{rate / 1e3:.0f}k px/s give {epochs(k):.0f} passes over {views} "
         f"training views at this size (>= {policy.min_epochs:g} wanted)"
     )
+    if detail is not None and policy.detail_views > 0 and epochs(k) >= policy.min_epochs:
+        k_passes, fewer, db = k, dataclasses.replace(policy, epoch_views=policy.detail_views), None
+        while k > k_cap:
+            w, h = level_size(width, height, k - 1)
+            if epochs_at(w, h, n_views, fewer, time_budget_s, steps, speed) < policy.min_epochs:
+                break
+            finer_db = detail(k - 1)
+            if finer_db >= DETAIL_DB:
+                break
+            k, db = k - 1, finer_db
+        if k < k_passes:
+            w, h = level_size(width, height, k)
+            rate = pixels_per_s(policy, policy_step_pixels(w, h, policy), speed)
+            passes = epochs_at(w, h, n_views, fewer, time_budget_s, steps, speed)
+            level = f"1/{k_passes}" if k_passes > 1 else "full size"
+            return result(
+                k,
+                "auto",
+                f"{budget} at ~{rate / 1e3:.0f}k px/s give {passes:.0f} passes over "
+                f"{counted_views(n_views, fewer)} (of {n_views}) training views at this size "
+                f"(>= {policy.min_epochs:g} wanted over at most {policy.detail_views} views: "
+                f"its photos hold detail the next coarser level lacks, {db:.1f} dB against it "
+                f"upsampled, under {DETAIL_DB:g}); over {counted} views it would give "
+                f"{epochs(k):.0f} and {level} would be chosen",
+            )
     if k > k_cap:
         finer = epochs(k - 1)
         why += (
@@ -193,11 +233,52 @@ def choose_resolution(
     return result(k, "auto", why)
 
 
+def photo_detail(photos: np.ndarray, k: int) -> float:
+    """How much of the photos pyramid level `k` holds beyond level k + 1: the PSNR of the level
+    (each photo area-downsampled by k, as `WS/images_<k>/`) against level k + 1 upsampled to
+    its size (bicubic), over photos (V, H, W, 3) in [0, 1] at the sfm size; at most 100 dB.
+    Limiting cases: a flat colour -> 100; pixel-wide stripes at k = 1 -> a few dB."""
+    height, width = photos.shape[1:3]
+    fine = np.stack([resize_area(p, *level_size(width, height, k)) for p in photos])
+    coarse = np.stack([resize_area(p, *level_size(width, height, k + 1)) for p in photos])
+    up = torch.nn.functional.interpolate(
+        torch.from_numpy(coarse).permute(0, 3, 1, 2).double(),
+        size=fine.shape[1:3],
+        mode="bicubic",
+        align_corners=False,
+    ).clamp(0, 1)
+    mse = ((up.permute(0, 2, 3, 1) - torch.from_numpy(fine).double()) ** 2).mean().item()
+    return min(100.0, 10 * math.log10(1 / mse)) if mse > 0 else 100.0
+
+
+def scene_photo_detail(ws: Workspace, scene: Scene) -> Callable[[int], float]:
+    """`photo_detail` of DETAIL_VIEWS evenly spaced training photos, level -> dB (read once,
+    at the sfm size, when first asked)."""
+    cache: dict = {}
+
+    def at(k: int) -> float:
+        if "photos" not in cache:
+            idx = scene.split("train")
+            picks = np.linspace(0, len(idx) - 1, min(DETAIL_VIEWS, len(idx))).round().astype(int)
+            views = [idx[i] for i in sorted(set(picks))]
+            cache["photos"] = load_images_and_alpha(ws, scene, views, 1)[0].numpy()
+        if k not in cache:
+            cache[k] = photo_detail(cache["photos"], k)
+        return cache[k]
+
+    return at
+
+
 # ---- the rule applied to a workspace's scene and a run --------------------------------------
 def working_resolution(
-    scene: Scene, spec: MethodSpec, cfg: TrainConfig, speed: Speed
+    scene: Scene,
+    spec: MethodSpec,
+    cfg: TrainConfig,
+    speed: Speed,
+    detail: Callable[[int], float] | None = None,
 ) -> WorkingResolution:
-    """The pyramid level this run trains at (see `recon.train.resolution`)."""
+    """The pyramid level this run trains at (see `recon.train.resolution`); `detail`: level ->
+    `photo_detail` of the scene's photos (`scene_photo_detail`)."""
     width, height = scene.image_size("train")
     return choose_resolution(
         width,
@@ -209,6 +290,7 @@ def working_resolution(
         speed,
         cfg.max_side,
         cfg.downscale,
+        detail,
     )
 
 

@@ -30,6 +30,7 @@ from recon.train.resolution import (
     eval_downscale,
     measure_speed,
     plan_schedules,
+    scene_photo_detail,
     trained_resolution,
     working_resolution,
 )
@@ -293,7 +294,7 @@ def _plan_run(ws, run, scene, cfg, spec, method_cfg, device, resume, log_fn):
     if probe["probe"] is not None:
         log_fn(f"throughput probe ({throughput['probe_s']:.1f} s): {speed.reason}")
         seed_everything(cfg.seed)  # the run draws what it would have drawn without the probe
-    res = working_resolution(scene, spec, cfg, speed)
+    res = working_resolution(scene, spec, cfg, speed, scene_photo_detail(ws, scene))
     return res, plan_schedules(method_cfg, spec, cfg, res, speed), throughput
 
 

@@ -3,6 +3,7 @@
 import dataclasses
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from recon.models.base import ResolutionPolicy
@@ -259,3 +260,76 @@ def test_h200_probes_train_3dgs_at_full_size_and_plan_from_the_probe():
     assert planned_steps(400, 400, policy, 120, 0, lego) == pytest.approx(12403, rel=0.01)
     fox = settled_speed(policy, [ProbeSample(9216, 0.0068, 8), ProbeSample(32400, 0.0073, 8)], None)
     assert choose_resolution(*FOX_NOW, policy, 180, 0, fox).downscale == 2
+
+
+def test_photo_detail_limiting_cases():
+    from recon.train.resolution import photo_detail
+
+    flat = np.full((2, 60, 80, 3), 0.4, np.float32)
+    assert photo_detail(flat, 1) == 100.0
+    stripes = np.zeros((1, 60, 80, 3), np.float32)
+    stripes[:, :, ::2] = 1.0  # pixel-wide: gone at 1/2, so its upsampling is mid-grey
+    assert photo_detail(stripes, 1) < 7.0
+    smooth = np.broadcast_to(np.linspace(0, 1, 80, dtype=np.float32)[None, None, :, None],
+                             (1, 60, 80, 3)).copy()  # fmt: skip
+    assert photo_detail(smooth, 1) > 40.0  # a ramp: the coarser level holds all of it
+
+
+SPIRAL = (799, 598, 262)  # spiral-300's sfm images and training views
+
+
+def test_detailed_photos_train_finer_where_fewer_views_still_get_their_passes():
+    """spiral-300 at 30 minutes: over 100 views the passes allow 1/2; its photos hold detail
+    at full size (29 dB against 1/2 upsampled, under DETAIL_DB), and over 50 views full size
+    gets 34 passes: full size. Smooth photos (fox's 42 dB) keep the passes' level, and the
+    detail is asked only of the levels the relaxed count could afford."""
+    from recon.models.splatting import RESOLUTION
+
+    asked = []
+
+    def crisp(k):
+        asked.append(k)
+        return 29.0
+
+    res = choose_resolution(*SPIRAL, RESOLUTION, 1800, detail=crisp)
+    assert (res.downscale, res.width, res.height) == (1, 799, 598) and asked == [1]
+    assert "34 passes over 50 (of 262)" in res.reason
+    assert "29.0 dB" in res.reason and "1/2 would be chosen" in res.reason
+    assert choose_resolution(*SPIRAL, RESOLUTION, 1800, detail=lambda k: 42.0).downscale == 2
+    assert choose_resolution(*SPIRAL, RESOLUTION, 1800).downscale == 2  # no photos: no detail
+    assert choose_resolution(*SPIRAL, RESOLUTION, 600, detail=crisp).downscale == 2  # not 3
+    # a policy without detail_views, or a user's level, never asks
+    asked.clear()
+    assert choose_resolution(*SPIRAL, SPLATS, 1800, detail=crisp).downscale > 1
+    assert choose_resolution(*SPIRAL, RESOLUTION, 1800, downscale=3, detail=crisp).downscale == 3
+    assert asked == []
+
+
+def test_the_fox_real_and_lego_levels_stay_with_their_photos_detail():
+    """The benchmark scenes' photos as measured (fox 45.5 dB at level 1 down to 37.0 at 9,
+    lego-200 28 dB but 100 views at 200 px): their levels do not move."""
+    from recon.models.splatting import RESOLUTION
+
+    fox_detail = {1: 45.5, 2: 43.8, 3: 41.2, 4: 39.7, 5: 38.9, 6: 38.1, 7: 37.8, 8: 37.5}.get
+    levels = [choose_resolution(*FOX_NOW, RESOLUTION, b, detail=fox_detail).downscale
+              for b in (120, 300, 600, 1800)]  # fmt: skip
+    assert levels == [9, 6, 4, 3]
+    for b in (120, 600):
+        lego = choose_resolution(200, 200, 100, RESOLUTION, b, detail=lambda k: 28.0)
+        assert lego.downscale == choose_resolution(200, 200, 100, RESOLUTION, b).downscale
+
+
+def test_a_workspaces_photo_detail_is_read_once_from_its_training_photos(tmp_path):
+    from recon.train.resolution import DETAIL_VIEWS, photo_detail, scene_photo_detail
+    from recon.workspace import Workspace
+    from recon.workspace.scene import load_images, load_scene
+    from tests.conftest import sphere_workspace
+
+    ws = Workspace.open(sphere_workspace(tmp_path, n_train=6, size=32))
+    scene = load_scene(ws, with_points=False)
+    detail = scene_photo_detail(ws, scene)
+    idx = scene.split("train")
+    views = [idx[i] for i in np.linspace(0, len(idx) - 1, DETAIL_VIEWS).round().astype(int)]
+    photos = load_images(ws, scene, views, 1).numpy()
+    assert detail(1) == pytest.approx(photo_detail(photos, 1))
+    assert 10.0 < detail(1) < 100.0 and detail(2) == detail(2)
