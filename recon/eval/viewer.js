@@ -442,12 +442,15 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       this.lines = this._lineBuffer(new Float32Array(pos), new Float32Array(col));
     }
 
-    _loadPoints() {
+    _loadPoints() { // 16-bit fractions of their bounding box, and RGB bytes
       const p = this.scene.points;
       if (!p) return;
+      const q = decode(p.xyz16, Uint16Array), xyz = new Float32Array(q.length);
+      for (let i = 0; i < q.length; i++)
+        xyz[i] = p.lo[i % 3] + (q[i] / 65535) * (p.hi[i % 3] - p.lo[i % 3]);
       const rgb = decode(p.rgb, Uint8Array), colors = new Float32Array(rgb.length);
       for (let i = 0; i < rgb.length; i++) colors[i] = rgb[i] / 255;
-      this.points = this._lineBuffer(decode(p.xyz, Float32Array), colors);
+      this.points = this._lineBuffer(xyz, colors);
     }
 
     _loadMesh() { // the run's mesh (a method without splats), and `recon mvs`'s when there is one

@@ -41,9 +41,10 @@ EXACT_GAUSSIANS = 60_000
 MAX_GAUSSIANS = 600_000  # the most visible (opacity times volume) of a run that has more
 MAX_POINTS = 100_000  # sfm points shown (an even subsample of more)
 MAX_FACES = 300_000  # mesh faces shown (a mesh with more is left out, with a note)
-# The scene scripts' layout, in every doc: a viewer.js reads the scenes of its own format (2:
-# large runs packed, `splat_pack`); a scene of another is written again before it is shown
-SCENE_FORMAT = 2
+# The scene scripts' layout, in every doc: a viewer.js reads the scenes of its own format (3:
+# large runs packed, `splat_pack`; sfm points as 16-bit fractions of their box); a scene of
+# another is written again before it is shown
+SCENE_FORMAT = 3
 
 
 def b64(array: np.ndarray, dtype) -> str:
@@ -64,8 +65,8 @@ def camera_entry(camera: Cameras, name: str, split: str, image: str = "") -> dic
         "fy": float(K[1, 1]),
         "cx": float(K[0, 2]),
         "cy": float(K[1, 2]),
-        "cam_from_world": cam.cam_from_world[0].reshape(-1).tolist(),
-        "centre": cam.world_from_cam[0, :3, 3].tolist(),
+        "cam_from_world": [float(f"{x:.9g}") for x in cam.cam_from_world[0].reshape(-1).tolist()],
+        "centre": [float(f"{x:.9g}") for x in cam.world_from_cam[0, :3, 3].tolist()],
         "image": image,
     }
 
@@ -141,7 +142,11 @@ def points_entry(scene) -> dict | None:
         else np.full(p.shape, 200, np.uint8)
     )
     step = max(1, len(p) // MAX_POINTS)
-    return {"xyz": b64(p[::step], "<f4"), "rgb": b64(c[::step], "u1")}
+    p, c = p[::step].astype(np.float64), c[::step]
+    lo, hi = p.min(0), p.max(0)  # positions as 16-bit fractions of their box
+    t = (p - lo) / np.where(hi > lo, hi - lo, 1.0)
+    xyz16 = np.clip(np.floor(t * 65535 + 0.5), 0, 65535)
+    return {"xyz16": b64(xyz16, "<u2"), "lo": lo.tolist(), "hi": hi.tolist(), "rgb": b64(c, "u1")}
 
 
 def mesh_entry(path: Path, scene) -> dict | None:

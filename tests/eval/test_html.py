@@ -19,3 +19,20 @@ def test_mesh_link_points_into_a_moved_workspace(tmp_path):
     html = mesh_gallery(ws, "r")
     assert 'href="runs/r/mesh/mesh.glb"' in html and "elsewhere" not in html
     assert 'src="runs/r/mesh/preview_0.png"' in html
+
+
+def test_a_3d_view_of_another_format_is_not_shown_but_named(tmp_path):
+    """A scene script an older recon wrote (another format) would not draw with this viewer:
+    the report says how to write it again instead."""
+    from types import SimpleNamespace
+
+    from recon.eval.html import viewer_block
+    from recon.eval.viewer import SCENE_FORMAT, write_scene_script
+
+    ws = SimpleNamespace(report_html=tmp_path / "report.html")
+    write_scene_script(tmp_path / "viewer", "new", {"format": SCENE_FORMAT, "cameras": []})
+    write_scene_script(tmp_path / "viewer", "old", {"cameras": []})
+    assert 'data-view="new"' in viewer_block(ws, "new")
+    old = viewer_block(ws, "old")
+    assert "recon-viewer" not in old and "recon eval -w WS --run old" in old
+    assert viewer_block(ws, "missing") == ""

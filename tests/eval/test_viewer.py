@@ -341,3 +341,46 @@ def test_a_mesh_travels_in_the_scene_frame_with_its_colours(tmp_path, monkeypatc
     assert viewer.mesh_entry(tmp_path / "missing.ply", scene) is None
     monkeypatch.setattr(viewer, "MAX_FACES", 5)
     assert viewer.mesh_entry(tmp_path / "grey.ply", scene) is None
+
+
+def test_sfm_points_travel_as_16_bit_fractions_and_are_drawn_where_they_are(tmp_path):
+    from types import SimpleNamespace
+
+    from recon.eval.viewer import points_entry
+
+    rng = np.random.default_rng(0)
+    xyz = np.concatenate([rng.uniform(-0.05, 0.05, (200, 3)), [[-1.0, -1, -1], [1.0, 1, 1]]])
+    rgb = np.tile([[1.0, 0.0, 0.0]], (len(xyz), 1))
+    info = SimpleNamespace(points=torch.from_numpy(xyz).float(), point_colors=rgb)
+    entry = points_entry(SimpleNamespace(info=info))
+    q = np.frombuffer(base64.b64decode(entry["xyz16"]), "<u2").reshape(-1, 3)
+    back = np.array(entry["lo"]) + q / 65535 * (np.array(entry["hi"]) - np.array(entry["lo"]))
+    assert np.abs(back - xyz.astype(np.float32)).max() <= 2.0 / 65535 + 1e-7
+    camera = view_camera(96, 72)
+    doc = {
+        "cameras": [camera_entry(camera, "view", "test")],
+        "points": entry,
+        "background": [1.0, 1.0, 1.0],
+        "near": 0.01,
+        "centre": [0.0, 0.0, 0.0],
+        "frustum_size": 0.05,
+    }
+    p = camera.cam_from_world[0] @ torch.tensor([0.0, 0.0, 0.0, 1.0])
+    u = round(float(camera.K[0, 0, 0] * p[0] / p[2] + camera.K[0, 0, 2]))
+    v = round(float(camera.K[0, 1, 1] * p[1] / p[2] + camera.K[0, 1, 2]))
+    page = write_page(tmp_path / "page", "scene", doc)
+    with chromium_driver(webgl=True) as driver:
+        driver.get(page.as_uri())
+        wait_until_ready(driver)
+        url = driver.execute_script(
+            "const w = window.reconViewers.scene; w.showCameras = false; w.showPoints = true;"
+            "w.setCamera(0, true); return w.snapshot();"
+        )
+        errors = console_errors(driver)
+    image = np.asarray(
+        Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB")
+    )
+    red = (image[..., 0] > 150) & (image[..., 1] < 100) & (image[..., 2] < 100)
+    ys, xs = np.nonzero(red)
+    assert errors == [] and len(xs) > 10
+    assert abs(np.median(xs) - u) <= 3 and abs(np.median(ys) - v) <= 3
