@@ -101,6 +101,7 @@ def main(workspace, run, size, frames, out_dir):
     script = page.parent / f"{run}.js"
     doc = scene_doc(script)
     count = doc["splats"]["count"] if "splats" in doc else 0
+    splat_bytes = gaussian_bytes(script, doc)
     result = {
         "workspace": str(ws.root),
         "run": run,
@@ -110,9 +111,9 @@ def main(workspace, run, size, frames, out_dir):
         "gaussians_shown": count,
         "gaussians": doc["splats"]["of"] if "splats" in doc else 0,
         "scene_bytes": script.stat().st_size,
-        "gaussian_bytes": gaussian_bytes(script, doc),
+        "gaussian_bytes": splat_bytes,
         # the Gaussians' own data, and the whole scene file (cameras and sfm points too)
-        "bytes_per_gaussian": round(gaussian_bytes(script, doc) / count, 1) if count else None,
+        "bytes_per_gaussian": round(splat_bytes / count, 1) if count else None,
         "file_bytes_per_gaussian": round(script.stat().st_size / count, 1) if count else None,
         **measure(page, run, width, height, frames),
     }

@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 
 from recon.eval.report import COLUMNS, _fmt, _size, row_cells
-from recon.eval.viewer import SCENE_FORMAT, scene_doc, viewer_html
+from recon.eval.viewer import scene_is_current, viewer_html
 from recon.eval.visuals import ERROR_MAX, KINDS
 from recon.workspace import Workspace, atomic_write_text
 from recon.workspace.workspace import MVS_RESULT
@@ -194,7 +194,7 @@ def viewer_block(ws: Workspace, run: str) -> str:
     script = ws.report_html.parent / "viewer" / f"{run}.js"
     if not script.exists():
         return ""
-    if (scene_doc(script) or {}).get("format") != SCENE_FORMAT:  # an older recon's scene
+    if not scene_is_current(script):  # an older recon's scene
         return (
             f"<p>Its 3D view was written by another version of recon: "
             f"<code>recon eval -w WS --run {esc(run)}</code> writes it again.</p>"

@@ -285,6 +285,11 @@ def scene_doc(script: Path) -> dict | None:
         return None
 
 
+def scene_is_current(script: Path) -> bool:
+    """The scene script exists and is of this viewer's format (`SCENE_FORMAT`)."""
+    return script.exists() and (scene_doc(script) or {}).get("format") == SCENE_FORMAT
+
+
 def run_page(ws: Workspace, run: str) -> Path:
     """WS/viewer/<run>.html, the run's 3D view on a page of its own (`recon view --run`); its
     scene is written again when the model is newer than it or it is of another format."""
@@ -295,7 +300,7 @@ def run_page(ws: Workspace, run: str) -> Path:
     if not model.exists():  # load_run says why (no such run, or not trained yet)
         load_run(ws, run, "cpu")
     fresh = script.exists() and script.stat().st_mtime >= model.stat().st_mtime
-    if fresh and page.exists() and (scene_doc(script) or {}).get("format") == SCENE_FORMAT:
+    if fresh and page.exists() and scene_is_current(script):
         shutil.copyfile(VIEWER_JS, folder / "viewer.js")  # this recon's viewer, whatever wrote it
         return page
     doc = viewer_scene(ws, run, ws.report_html.parent)

@@ -26,6 +26,9 @@ import torch
 from recon.gaussians.splat_formats import (
     CHUNK,
     SH_C0,
+    _pack_111011,
+    _unorm,
+    _unpack_111011,
     logit,
     morton_order,
     pack_rotation,
@@ -67,11 +70,6 @@ def sh_codebook(
         counts = torch.bincount(labels, minlength=k).float()[:, None]
         centres = torch.where(counts > 0, sums / counts.clamp(min=1), centres)
     return centres.double().numpy(), nearest(x).numpy().astype(np.int64)
-
-
-def _unorm(t: np.ndarray, bits: int) -> np.ndarray:
-    top = (1 << bits) - 1
-    return np.clip(np.floor(np.asarray(t) * top + 0.5), 0, top).astype(np.uint32)
 
 
 def _fraction(values: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -124,12 +122,9 @@ def pack_splats(
     # fractions of the float32 bounds the viewer reads
     c = chunks.astype(np.float64)[chunk_of]
     t_pos = _fraction(pos, c[:, 0:3], c[:, 3:6])
-    position = (
-        _unorm(t_pos[:, 0], 11) << 21 | _unorm(t_pos[:, 1], 10) << 11 | _unorm(t_pos[:, 2], 11)
-    )
     sections = {
         "chunks": chunks.tobytes(),
-        "position": _planes(position, 4),
+        "position": _planes(_pack_111011(t_pos), 4),
         "rotation": _planes(pack_rotation(np.asarray(quats)[order], ROTATION_BITS), 3),
         "scale": _unorm(_fraction(scl, c[:, 6:9], c[:, 9:12]), 8).T.astype(np.uint8),
         "colour": np.concatenate(
@@ -169,11 +164,7 @@ def unpack_splats(header: dict, data: bytes) -> dict[str, np.ndarray]:
         return np.frombuffer(raw, dtype, length // np.dtype(dtype).itemsize, offset)
 
     c = section("chunks", "<f4").astype(np.float64).reshape(-1, 18)[np.arange(G) // CHUNK]
-    p = _words(section("position").reshape(4, G))
-    t_pos = np.stack(
-        [(p >> np.uint64(21)) / 2047.0, ((p >> np.uint64(11)) & np.uint64(1023)) / 1023.0,
-         (p & np.uint64(2047)) / 2047.0], -1,
-    )  # fmt: skip
+    t_pos = _unpack_111011(_words(section("position").reshape(4, G)).astype(np.uint32))
     t_scale = section("scale").reshape(3, G).T / 255.0
     colour = section("colour").reshape(4, G).T / 255.0
     rgb = c[:, 12:15] * (1 - colour[:, :3]) + c[:, 15:18] * colour[:, :3]
