@@ -382,6 +382,12 @@ class ResolutionPolicy:
     # pixels_per_step, or the probe image's); 0: never measured, the run takes the prior speed
     probe_overhead_s: float = 0.0
     probe_pixels_per_s: float = 0.0
+    # ... with its model built from at most this many sfm points (0: all of them). The probe
+    # measures the device, not the scene: a step's cost grows with the model a method starts
+    # from its points (3dgs: one Gaussian a point), so a capture of many photos, with several
+    # times the points, would read as a slower machine, though its run's model grows to what
+    # densification makes of it, about the same from any start
+    probe_points: int = 0
 
 
 @dataclass(frozen=True)

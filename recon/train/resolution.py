@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from recon.io.images import resize_area
-from recon.models.base import MethodSpec, ResolutionPolicy, TrainData
+from recon.models.base import MethodSpec, ResolutionPolicy, SceneInfo, TrainData
 from recon.train.config import TrainConfig
 from recon.train.throughput import (
     PROBE_SIDES,
@@ -327,6 +327,18 @@ def probe_levels(width: int, height: int, policy: ResolutionPolicy) -> list[int]
     return sorted({downscale_for_max_side(width, height, s) for s in sides}, reverse=True)
 
 
+def probe_scene(info: SceneInfo, max_points: int) -> SceneInfo:
+    """The scene the probe's throw-away model is built from: `info` with at most `max_points`
+    of its sfm points, evenly spaced through them (0: all). Example: 31,921 points, 8,000 ->
+    points 0, 4, 8, ... 31,920 (every 3.99th); 7,939 points -> all of them."""
+    n = 0 if info.points is None else len(info.points)
+    if max_points <= 0 or n <= max_points:
+        return info
+    keep = torch.linspace(0, n - 1, max_points, device=info.points.device).round().long()
+    colors = None if info.point_colors is None else info.point_colors[keep]
+    return dataclasses.replace(info, points=info.points[keep], point_colors=colors)
+
+
 def needs_speed(cfg: TrainConfig, spec: MethodSpec, method_cfg) -> bool:
     """A new run's level or step plan depends on the device's speed: a time budget, and the
     level left to the rule or step schedules to plan."""
@@ -338,8 +350,8 @@ def measure_speed(
     ws: Workspace, scene: Scene, spec: MethodSpec, method_cfg, cfg: TrainConfig, device
 ) -> tuple[Speed, dict]:
     """The device's `Speed` for this run, and what was measured (for run.json): the probe
-    (`throughput.run_probe`) of a throw-away model built from the run's config on
-    `PROBE_VIEWS` training views, settled against the prior on a CPU
+    (`throughput.run_probe`) of a throw-away model built from the run's config (and at most
+    `policy.probe_points` sfm points: `probe_scene`) on `PROBE_VIEWS` training views, settled against the prior on a CPU
     (`throughput.settled_speed`); the prior where nothing depends on it or the method has no
     reference probe (off a CPU, the reference machine's figures)."""
     cpu = device.type == "cpu"
@@ -358,7 +370,7 @@ def measure_speed(
         None if alpha is None else alpha.to(device),
     )
     levels = probe_levels(*scene.image_size("train"), policy)
-    model = spec.build(method_cfg, scene.info).to(device)
+    model = spec.build(method_cfg, probe_scene(scene.info, policy.probe_points)).to(device)
     samples: list[ProbeSample] = []
     for tries in range(1, PROBE_TRIES + 1):
         samples = fastest(samples, run_probe(model, data, levels))

@@ -333,3 +333,84 @@ def test_a_workspaces_photo_detail_is_read_once_from_its_training_photos(tmp_pat
     photos = load_images(ws, scene, views, 1).numpy()
     assert detail(1) == pytest.approx(photo_detail(photos, 1))
     assert 10.0 < detail(1) < 100.0 and detail(2) == detail(2)
+
+
+def test_probe_scene_keeps_at_most_the_policys_points():
+    """The probe's model starts from at most `probe_points` sfm points, evenly spaced through
+    them (31,921 -> 8,000: the first and last kept, colours with their points); fewer, none or
+    no cap: the scene as it is."""
+    import torch
+
+    from recon.models.base import SceneInfo
+    from recon.train.resolution import probe_scene
+
+    points = torch.arange(31921 * 3, dtype=torch.float32).reshape(-1, 3)
+    info = SceneInfo(torch.zeros(2, 3), True, torch.zeros(3), 0.1, 10.0, points, points / 1e5)
+    small = probe_scene(info, 8000)
+    assert small.points.shape == (8000, 3) and small.point_colors.shape == (8000, 3)
+    assert small.points[0].tolist() == [0, 1, 2] and small.points[-1, 0] == 31920 * 3
+    assert torch.equal(small.point_colors, small.points / 1e5)
+    gaps = torch.diff(small.points[:, 0]) / 3
+    assert set(gaps.tolist()) <= {3.0, 4.0, 5.0}  # every 3.99th
+    assert probe_scene(info, 31921) is info and probe_scene(info, 0) is info
+    bare = dataclasses.replace(info, points=None, point_colors=None)
+    assert probe_scene(bare, 8000) is bare
+
+
+def test_a_many_point_capture_probes_as_the_machine_it_runs_on():
+    """spiral-300 on the reference machine (31,921 sfm points, 4x fox's): probed with all of
+    its points, its 3dgs steps (9.7k px in 32.2 ms, 29.7k px in 50.0 ms) read as a machine
+    0.35x / 0.59x the reference's and a 30-minute run would train at 1/2, though its full-size
+    run made 0.46 s steps where the reference plans 0.53 s; probed with 3dgs's 8,000
+    (`probe_points`), its steps (13.9 and 25.2 ms) settle on the prior: full size, and a plan
+    of 3,410 steps against the 3,896 the full-size run made."""
+    from recon.models.splatting import RESOLUTION
+
+    def level(samples):
+        speed = settled_speed(RESOLUTION, samples, prior_speed(2))
+        res = choose_resolution(*SPIRAL, RESOLUTION, 1800, 0, speed, detail=lambda k: 29.0)
+        return speed, res.downscale
+
+    assert RESOLUTION.probe_points == 8000
+    every_point = [ProbeSample(9690, 0.0322, 16), ProbeSample(29651, 0.0500, 16)]
+    speed, k = level(every_point)
+    assert speed.source == "measured" and k == 2
+    capped = [ProbeSample(9690, 0.0139, 16), ProbeSample(29651, 0.0252, 16)]
+    speed, k = level(capped)
+    assert speed.source == "prior" and k == 1
+    assert planned_steps(799, 598, RESOLUTION, 1800, 0, speed) == pytest.approx(3410, abs=5)
+
+
+def test_the_probe_builds_its_model_from_the_capped_points(tmp_path):
+    """`measure_speed` builds its throw-away model from `probe_scene` of the run's scene:
+    1,000 sfm points, a policy of 300 -> a model of 300 Gaussians, timed (32-px photos: one
+    level)."""
+    import torch
+
+    from recon.models.registry import method_spec
+    from recon.train.config import TrainConfig, build_config
+    from recon.train.resolution import measure_speed
+    from recon.workspace import Workspace
+    from recon.workspace.scene import load_scene
+    from tests.conftest import sphere_workspace
+
+    ws = Workspace.open(sphere_workspace(tmp_path, n_train=4, size=32))
+    scene = load_scene(ws)
+    g = torch.Generator().manual_seed(0)
+    scene.info = replace(
+        scene.info, points=torch.rand(1000, 3, generator=g) - 0.5, point_colors=torch.rand(1000, 3)
+    )
+    splats = method_spec("3dgs")
+    built = []
+
+    def build(config, info):
+        built.append(len(info.points))
+        return splats.build(config, info)
+
+    spec = replace(splats, build=build, resolution=replace(splats.resolution, probe_points=300))
+    cfg = TrainConfig(method="3dgs", preset="fast", time_budget_s=60)
+    method_cfg = build_config(spec.config_cls, spec.presets, "fast", [])
+    speed, probe = measure_speed(ws, scene, spec, method_cfg, cfg, torch.device("cpu"))
+    assert built and set(built) == {300}
+    assert probe["probe"]["levels"] == [1] and probe["probe"]["samples"][0]["steps"] >= 2
+    assert speed.overhead > 0
