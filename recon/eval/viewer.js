@@ -15,6 +15,12 @@
   const TEX_WIDTH = 2048;
   const DISPLAY_WIDTH = 640;  // px: the width a camera's view is drawn at in the page
   const PICK_RADIUS = 12;  // px: how near a click must be to a camera's centre to fly there
+  // While the view moves, each frame is drawn within FRAME_BUDGET_MS (20 frames a second) at
+  // a level of detail set from the last frame's time (`nextLod`): first a coarser resolution,
+  // bilinearly upsampled (the splats' fragments go as its square), down to MIN_SCALE, then
+  // only the most prominent Gaussians (opacity x cube root of the covariance's determinant),
+  // down to MIN_SHARE of them; SETTLE_MS after the last move the view is drawn in full.
+  const FRAME_BUDGET_MS = 50, MIN_SCALE = 0.25, MIN_SHARE = 0.05, SETTLE_MS = 250;
 
   // recon's packed layout (`recon.gaussians.splat_pack`, ~16 bytes a Gaussian): gzip of the
   // chunks' float bounds (the compressed PLY's, per 256 Gaussians in Morton order), then byte
@@ -108,6 +114,36 @@
     return out;
   }
 
+  // The next moving frame's level of detail {scale, share} from the last one's `ms`: over the
+  // budget, a coarser resolution first, then fewer Gaussians; well under it (1.5x), the
+  // Gaussians back first, then the resolution. Example: {1, 1} at 800 ms -> scale 0.24 ->
+  // clamped 0.25; {0.25, 1} at 100 ms -> share 0.475; {0.25, 0.5} at 20 ms -> share 1.
+  function nextLod(lod, ms, budget = FRAME_BUDGET_MS) {
+    let { scale, share } = lod;
+    const r = budget / Math.max(ms, 1e-3);
+    if (r < 1) {
+      if (scale > MIN_SCALE) scale = Math.max(MIN_SCALE, scale * Math.sqrt(r) * 0.95);
+      else share = Math.max(MIN_SHARE, share * r * 0.95);
+    } else if (r > 1.5) {
+      const up = Math.min(r / 1.2, 2);
+      if (share < 1) share = Math.min(1, share * up);
+      else scale = Math.min(1, scale * Math.sqrt(up));
+    }
+    return { scale, share };
+  }
+  // the first moving frame's level of detail, from a full frame's `ms`: nextLod applied to the
+  // times it predicts (fragments ~ scale^2, the rest ~ share)
+  function lodFor(ms, budget = FRAME_BUDGET_MS) {
+    let lod = { scale: 1, share: 1 };
+    for (let k = 0; k < 8; k++) {
+      const next = nextLod(lod, ms, budget);
+      if (next.scale === lod.scale && next.share === lod.share) break;
+      ms *= (next.scale / lod.scale) ** 2 * (next.share / lod.share);
+      lod = next;
+    }
+    return lod;
+  }
+
   async function gunzip(bytes) {
     const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("gzip"));
     return new Uint8Array(await new Response(stream).arrayBuffer());
@@ -194,12 +230,14 @@ uniform vec2 uSize;              // width height (px)
 uniform vec3 uCenter;            // camera centre (world)
 uniform int uDegree, uTile, uAntialiased, uFootprint;
 uniform float uNear;
-layout(location = 0) in uint aIndex;  // the splat, in back-to-front order
-out vec3 vColor; out vec3 vConic; out vec2 vMean; out float vOpacity;
+uniform highp usampler2D uOrder;  // the splats back to front, one a texel
+out vec3 vColor; out vec3 vConic; out vec2 vMean; out float vOpacity; flat out vec4 vBox;
 ivec2 texel(int i) { return ivec2(i % ${TEX_WIDTH}, i / ${TEX_WIDTH}); }
 vec3 sh(int base, int k) { return texelFetch(uSh, texel(base + k), 0).rgb; }
 void main() {
-  int i = int(aIndex);
+  // vertex 4 s + k is corner k of the s-th splat from the back (drawn as two indexed
+  // triangles: one draw, no instancing, which a software WebGL pays for per instance)
+  int i = int(texelFetch(uOrder, texel(gl_VertexID >> 2), 0).r);
   vec4 g0 = texelFetch(uGeom, texel(3 * i), 0);
   vec4 g1 = texelFetch(uGeom, texel(3 * i + 1), 0);
   vec4 g2 = texelFetch(uGeom, texel(3 * i + 2), 0);
@@ -232,18 +270,31 @@ void main() {
     opacity *= sqrt(clamp(kept, 1e-12, 1.0));
   }
   // the pixels of every tile the 3-sigma box touches (the rasterizer's candidates), within
-  // the box around the ellipse where alpha can reach 1/255 (d^T Sigma'^-1 d <= 2 ln(255 o):
-  // half sides sqrt(q a), sqrt(q c)); outside it every fragment would be discarded anyway
+  // the ellipse where alpha can reach 1/255 (d^T Sigma'^-1 d <= q = 2 ln(255 o)); outside it
+  // every fragment would be discarded anyway. The quad drawn is the smaller of two that hold
+  // those pixels: the ellipse's axis-aligned box (half sides sqrt(q a), sqrt(q c)) cut to the
+  // tiles, or its box along its axes (half sides sqrt(q lambda)), the tiles then cut per
+  // fragment (vBox): a long thin splat at 45 degrees covers a fraction of its aligned box
   if (opacity * 255.0 <= 1.0) return;
   vec2 grid = ceil(uSize / float(uTile));
   vec2 lo = min(max(floor((mean - r) / float(uTile)), 0.0), grid);
   vec2 hi = min(max(floor((mean + r) / float(uTile)), -1.0) + 1.0, grid);
   if (any(lessThanEqual(hi, lo))) return;
-  vec2 reach = sqrt(2.0 * log(255.0 * opacity) * vec2(a, c)) * 1.001 + 0.01;
+  float q = 2.0 * log(255.0 * opacity);
+  vec2 reach = sqrt(q * vec2(a, c)) * 1.001 + 0.01;
   vec2 from = max(lo * float(uTile), mean - reach), to = min(hi * float(uTile), mean + reach);
   if (any(lessThanEqual(to, from))) return;
-  vec2 corner = vec2(gl_VertexID & 1, gl_VertexID >> 1);
+  vBox = vec4(lo, hi) * float(uTile);
+  vec2 corner = vec2(gl_VertexID & 1, (gl_VertexID >> 1) & 1);
   vec2 pixel = mix(from, to, corner);
+  float gap = length(vec2(0.5 * (a - c), b));  // eigenvalues 0.5 (a + c) +- gap
+  vec2 axes = sqrt(q * max(0.5 * (a + c) + vec2(gap, -gap), 0.0)) * 1.001 + 0.01;
+  if (4.0 * axes.x * axes.y < (to.x - from.x) * (to.y - from.y)) {
+    vec2 major = abs(b) > 1e-9 * (a + c) ? normalize(vec2(b, 0.5 * (c - a) + gap))
+                                         : (a >= c ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
+    vec2 side = 2.0 * corner - 1.0;
+    pixel = mean + side.x * axes.x * major + side.y * axes.y * vec2(-major.y, major.x);
+  }
   gl_Position = vec4(2.0 * pixel.x / uSize.x - 1.0, 1.0 - 2.0 * pixel.y / uSize.y, 0.0, 1.0);
   // colour: SH up to uDegree at the direction from the camera centre, + 0.5, >= 0
   vec3 d = normalize(g0.xyz - uCenter);
@@ -276,10 +327,11 @@ void main() {
   const SPLAT_FS = `#version 300 es
 precision highp float;
 uniform vec2 uSize;
-in vec3 vColor; in vec3 vConic; in vec2 vMean; in float vOpacity;
+in vec3 vColor; in vec3 vConic; in vec2 vMean; in float vOpacity; flat in vec4 vBox;
 out vec4 outColor;
 void main() {
   vec2 pixel = vec2(gl_FragCoord.x, uSize.y - gl_FragCoord.y);  // recon's (col + 0.5, row + 0.5)
+  if (any(lessThan(pixel, vBox.xy)) || any(greaterThanEqual(pixel, vBox.zw))) discard;
   vec2 d = vMean - pixel;
   float power = -0.5 * (vConic.x * d.x * d.x + vConic.z * d.y * d.y) - vConic.y * d.x * d.y;
   float alpha = min(0.99, vOpacity * exp(power));
@@ -325,10 +377,20 @@ void main() {
   vUv = c;
   gl_Position = vec4(2.0 * c - 1.0, 0.0, 1.0);
 }`;
+  // the drawn region (uRegion px of the target, from its corner) bilinearly resampled to the
+  // canvas: the same pixels where the two are the same size
   const BLIT_FS = `#version 300 es
 precision highp float;
-uniform sampler2D uImage; in vec2 vUv; out vec4 outColor;
-void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }`;
+uniform highp sampler2D uImage; uniform vec2 uRegion; in vec2 vUv; out vec4 outColor;
+vec3 at(ivec2 p) {
+  return texelFetch(uImage, clamp(p, ivec2(0), ivec2(uRegion) - 1), 0).rgb;
+}
+void main() {
+  vec2 p = vUv * uRegion - 0.5, f = fract(p);
+  ivec2 i = ivec2(floor(p));
+  vec3 c = mix(mix(at(i), at(i + ivec2(1, 0)), f.x), mix(at(i + ivec2(0, 1)), at(i + 1), f.x), f.y);
+  outColor = vec4(clamp(c, 0.0, 1.0), 1.0);
+}`;
 
   // ---- the viewer --------------------------------------------------------------------------
   class Viewer {
@@ -403,10 +465,36 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         for (let j = 0; j < k; j++)
           for (let ch = 0; ch < 3; ch++) shTex[4 * (16 * i + j) + ch] = sh[3 * (k * i + j) + ch];
       this.means = means;
+      this.intervals = intervals;
+      this.trace = new Float32Array(this.count);  // of Sigma: its largest eigenvalue at most
+      for (let i = 0; i < this.count; i++) this.trace[i] = cov[6 * i] + cov[6 * i + 3] + cov[6 * i + 5];
+      this.opacity = opacity;
+      this.all = new Uint32Array(this.count).map((_, i) => i);
+      // most prominent first (a moving view's level of detail draws a prefix): opacity x the
+      // cube root of det Sigma (the Gaussian's mean area, up to a constant)
+      const prominence = new Float32Array(this.count);
+      for (let i = 0; i < this.count; i++) {
+        const [xx, xy, xz, yy, yz, zz] = cov.subarray(6 * i, 6 * i + 6);
+        const det = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz);
+        prominence[i] = opacity[i] * Math.cbrt(Math.max(det, 0));
+      }
+      this.prominent = this.all.slice().sort((i, j) => prominence[j] - prominence[i]);
       this.geomTex = floatTexture(gl, 3 * this.count, geom);
       this.shTex = floatTexture(gl, 16 * this.count, shTex);
-      this.order = new Uint32Array(this.count);
-      this.indexBuffer = gl.createBuffer();
+      // the order, a texel a splat, rewritten every frame; the quads' corners, indexed once
+      const rows = Math.ceil(this.count / TEX_WIDTH);
+      this.order = new Uint32Array(rows * TEX_WIDTH);
+      this.orderTex = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_2D, this.orderTex);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.R32UI, TEX_WIDTH, rows);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER])
+        gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+      const corners = new Uint32Array(6 * this.count);
+      for (let i = 0; i < this.count; i++) corners.set([0, 1, 2, 2, 1, 3].map((k) => 4 * i + k), 6 * i);
+      gl.bindVertexArray(this.vao);
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, corners, gl.STATIC_DRAW);
+      gl.bindVertexArray(null);
     }
 
     _lineBuffer(positions, colors) {
@@ -530,17 +618,13 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
     // Back to front: a stable LSD radix sort of the depths along the optical axis (their float
     // bits, 8 at a time), read in reverse. recon's rasterizer sorts front to back, stable, so
     // splats at equal depth meet in the same order.
-    _sort(view) {
-      const m = view.cam_from_world, means = this.means, n = this.count;
-      const keys = this.sortKeys || (this.sortKeys = new Uint32Array(n));
-      const depth = new Float32Array(keys.buffer);
-      for (let i = 0; i < n; i++) {
-        const z = m[8] * means[3 * i] + m[9] * means[3 * i + 1] + m[10] * means[3 * i + 2] + m[11];
-        depth[i] = z > 0 ? z : 0;  // behind the camera: culled by the shader anyway
-      }
-      let src = this.sortA || (this.sortA = new Uint32Array(n));
-      let dst = this.sortB || (this.sortB = new Uint32Array(n));
-      for (let i = 0; i < n; i++) src[i] = i;
+    // `candidates`: the splats to draw (all, in index order, or a moving view's prefix of the
+    // most prominent), less those the shader would cull (`_visible`); returns how many
+    _sort(view, candidates) {
+      const keys = this.sortKeys || (this.sortKeys = new Uint32Array(this.count));
+      let src = this.sortA || (this.sortA = new Uint32Array(this.count));
+      let dst = this.sortB || (this.sortB = new Uint32Array(this.count));
+      const n = this._visible(view, candidates, new Float32Array(keys.buffer), src);
       const counts = new Uint32Array(256);
       for (let shift = 0; shift < 32; shift += 8) {
         counts.fill(0);
@@ -550,14 +634,41 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         [src, dst] = [dst, src];
       }
       for (let i = 0; i < n; i++) this.order[i] = src[n - 1 - i];
-      const gl = this.gl;
-      gl.bindVertexArray(this.vao);
-      gl.bindBuffer(gl.ARRAY_BUFFER, this.indexBuffer);
-      gl.bufferData(gl.ARRAY_BUFFER, this.order, gl.DYNAMIC_DRAW);
-      gl.enableVertexAttribArray(0);
-      gl.vertexAttribIPointer(0, 1, gl.UNSIGNED_INT, 0, 0);
-      gl.vertexAttribDivisor(0, 1);
-      gl.bindVertexArray(null);
+      const gl = this.gl, rows = Math.ceil(n / TEX_WIDTH);
+      gl.bindTexture(gl.TEXTURE_2D, this.orderTex);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, rows, gl.RED_INTEGER, gl.UNSIGNED_INT,
+        this.order.subarray(0, rows * TEX_WIDTH));
+      return n;
+    }
+
+    // The candidates the shader would not cull into `out` (their depths into `depth`), a
+    // software WebGL paying for every vertex it is given: in front of the near plane, opacity
+    // over 1/255, and within a radius of the image no smaller than the shader's 3-sigma one
+    // (the 2D covariance's largest eigenvalue is at most |J|^2 tr Sigma plus the dilations,
+    // J the guard band's Jacobian at its widest). Returns how many.
+    _visible(view, candidates, depth, out) {
+      const m = view.cam_from_world, means = this.means, trace = this.trace, T = this.intervals;
+      const { fx, fy, cx, cy, width: W, height: H } = view, near = this.scene.near || 0.01;
+      const gx = (GUARD_BAND - 1) * W / (2 * fx), gy = (GUARD_BAND - 1) * H / (2 * fy);
+      const ux = Math.max(cx / fx, (W - cx) / fx) + gx, uy = Math.max(cy / fy, (H - cy) / fy) + gy;
+      const jj = fx * fx * (1 + ux * ux) + fy * fy * (1 + uy * uy);
+      let n = 0;
+      for (let k = 0; k < candidates.length; k++) {
+        const i = candidates[k];
+        if (!(this.opacity[i] * 255 > 1)) continue;
+        const x = means[3 * i], y = means[3 * i + 1], zw = means[3 * i + 2];
+        const z = m[8] * x + m[9] * y + m[10] * zw + m[11];
+        if (!(z > near)) continue;
+        const px = m[0] * x + m[1] * y + m[2] * zw + m[3], py = m[4] * x + m[5] * y + m[6] * zw + m[7];
+        const ratio = T ? fx * T[i] / z : 0;
+        const dil = DILATION * Math.max(1, ratio * ratio);
+        const r = 3 * Math.sqrt(jj * trace[i] / (z * z) + 2 * dil + 0.4) + 1;
+        const u = fx * px / z + cx, v = fy * py / z + cy;
+        if (u + r <= 0 || u - r >= W || v + r <= 0 || v - r >= H) continue;
+        depth[i] = z;
+        out[n++] = i;
+      }
+      return n;
     }
 
     _uniforms(p, view) {
@@ -570,8 +681,19 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
       gl.uniform1f(gl.getUniformLocation(p, "uNear"), this.scene.near || 0.01);
     }
 
-    render() {
-      const gl = this.gl, view = this.view, s = this.scene;
+    // Draw the view: in full, or (`moving`) at the level of detail the last moving frame's
+    // time allows (`nextLod`), in full again SETTLE_MS after the last move.
+    render(moving = false) {
+      const gl = this.gl, s = this.scene;
+      const lod = moving ? this.lod || lodFor(this.fullMs || 0) : { scale: 1, share: 1 };
+      const view = { ...this.view };
+      if (lod.scale < 1) {
+        const k = lod.scale;
+        Object.assign(view, { fx: view.fx * k, fy: view.fy * k, cx: view.cx * k, cy: view.cy * k,
+          width: Math.max(1, Math.round(view.width * k)), height: Math.max(1, Math.round(view.height * k)) });
+      }
+      clearTimeout(this.settle);
+      if (moving) this.settle = setTimeout(() => this.render(), SETTLE_MS);
       const t0 = performance.now();
       gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
       gl.viewport(0, 0, view.width, view.height);
@@ -592,8 +714,11 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         }
         gl.disable(gl.DEPTH_TEST);
       }
+      let drawn = 0, candidates = 0;
       if (this.count) {
-        this._sort(view);
+        const share = Math.max(1, Math.round(lod.share * this.count));
+        candidates = share < this.count ? this.prominent.subarray(0, share) : this.all;
+        drawn = this._sort(view, candidates);
         const p = this.programs.splat;
         gl.useProgram(p);
         this._uniforms(p, view);
@@ -610,10 +735,13 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         gl.activeTexture(gl.TEXTURE1);
         gl.bindTexture(gl.TEXTURE_2D, this.shTex);
         gl.uniform1i(gl.getUniformLocation(p, "uSh"), 1);
+        gl.activeTexture(gl.TEXTURE2);
+        gl.bindTexture(gl.TEXTURE_2D, this.orderTex);
+        gl.uniform1i(gl.getUniformLocation(p, "uOrder"), 2);
         gl.enable(gl.BLEND);
         gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
         gl.bindVertexArray(this.vao);
-        gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.count);
+        gl.drawElements(gl.TRIANGLES, 6 * drawn, gl.UNSIGNED_INT, 0);
         gl.disable(gl.BLEND);
       }
       const p = this.programs.line;
@@ -628,16 +756,23 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
         gl.drawArrays(gl.LINES, 0, this.lines.count);
       }
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-      gl.viewport(0, 0, view.width, view.height);
-      gl.useProgram(this.programs.blit);
+      gl.viewport(0, 0, this.view.width, this.view.height);
+      const blit = this.programs.blit;
+      gl.useProgram(blit);
       gl.activeTexture(gl.TEXTURE0);
       gl.bindTexture(gl.TEXTURE_2D, this.target_tex);
-      gl.uniform1i(gl.getUniformLocation(this.programs.blit, "uImage"), 0);
+      gl.uniform1i(gl.getUniformLocation(blit, "uImage"), 0);
+      gl.uniform2f(gl.getUniformLocation(blit, "uRegion"), view.width, view.height);
       gl.bindVertexArray(this.emptyVao);
       gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
       gl.bindVertexArray(null);
-      gl.finish();
+      // a pixel read back: the frame is drawn (finish() need not wait for it)
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, this.pixel || (this.pixel = new Uint8Array(4)));
       this.frameMs = performance.now() - t0;
+      this.drawn = { ...lod, gaussians: candidates.length || 0, visible: drawn,
+        width: view.width, height: view.height };
+      if (moving) this.lod = nextLod(lod, this.frameMs);
+      else this.fullMs = this.frameMs;
     }
 
     _centre(view) {
@@ -700,7 +835,7 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
 
     _moveWorld(worldFromWorld) { // the camera moved by a world transform T: cam_from_world T^-1
       this.view.cam_from_world = matmul(this.view.cam_from_world, rigidInverse(worldFromWorld));
-      this.render();
+      this.render(true);
     }
     orbit(yaw, pitch) {
       const t = this.target, right = this._axis(0);
@@ -779,6 +914,7 @@ void main() { outColor = vec4(clamp(texture(uImage, vUv).rgb, 0.0, 1.0), 1.0); }
   }
 
   window.reconViewers = {};
+  window.reconLod = { nextLod, lodFor, FRAME_BUDGET_MS, MIN_SCALE, MIN_SHARE };
   async function start() {
     await Promise.all([...document.querySelectorAll(".recon-viewer")].map(async (root) => {
       try {

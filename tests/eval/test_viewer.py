@@ -4,6 +4,7 @@ same Gaussians and camera drawn in headless chromium (software WebGL) and by
 reason, where chromium is missing (`make browser`)."""
 
 import base64
+import contextlib
 import io
 import time
 
@@ -59,11 +60,34 @@ def recon_render(g: dict, camera: Cameras, terms: dict) -> np.ndarray:
     return out["rgb"].clamp(0, 1).numpy()
 
 
+def one_camera_doc(camera: Cameras, splats: dict, terms: dict) -> dict:
+    """A scene of one held-out camera and these Gaussians (`splat_entry`), drawn as `terms`."""
+    return {
+        "cameras": [camera_entry(camera, "view", "test")],
+        "splats": splats,
+        "background": terms["background"],
+        "near": terms["near"],
+        "centre": [0.0, 0.0, 0.0],
+        "frustum_size": 0.1,
+    }
+
+
 def wait_until_ready(driver, seconds: float = 20.0) -> None:
     deadline = time.time() + seconds
     while not driver.execute_script("return window.reconViewersReady === true"):
         assert time.time() < deadline, "the viewer never started"
         time.sleep(0.05)
+
+
+@contextlib.contextmanager
+def opened_viewer(folder, doc: dict):
+    """Headless chromium (software WebGL) on the page of `doc`, written into `folder`, its
+    viewer started."""
+    page = write_page(folder, "scene", doc)
+    with chromium_driver(webgl=True) as driver:
+        driver.get(page.as_uri())
+        wait_until_ready(driver)
+        yield driver
 
 
 def browser_render(folder, doc: dict, url: str = "") -> tuple[np.ndarray, dict]:
@@ -79,6 +103,9 @@ def browser_render(folder, doc: dict, url: str = "") -> tuple[np.ndarray, dict]:
             "const v = window.reconViewers.scene; if (!v) return null;"
             "v.showCameras = false; v.showPoints = false; v.setCamera(0, true); return v.snapshot();"
         )
+        drawn = driver.execute_script(
+            "const v = window.reconViewers.scene; return v && v.count ? v.drawn : null"
+        )
         seen = {
             "errors": console_errors(driver),
             "status": status,
@@ -89,6 +116,7 @@ def browser_render(folder, doc: dict, url: str = "") -> tuple[np.ndarray, dict]:
             ),
         }
     assert url is not None, seen
+    seen["drawn"] = drawn
     png = base64.b64decode(url.split(",", 1)[1])
     image = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float32) / 255
     return image, seen
@@ -115,18 +143,44 @@ def test_the_viewer_draws_what_recon_renders(tmp_path, size, degree, antialiased
         "near": 0.01,
         "intervals": intervals,
     }
-    doc = {
-        "cameras": [camera_entry(camera, "view", "test")],
-        "splats": splat_entry(g, terms),
-        "background": terms["background"],
-        "near": terms["near"],
-        "centre": [0.0, 0.0, 0.0],
-        "frustum_size": 0.1,
-    }
+    doc = one_camera_doc(camera, splat_entry(g, terms), terms)
     expected = recon_render(g, camera, terms)
     seen_image, seen = browser_render(tmp_path / "page", doc)
     assert seen["errors"] == [], seen
     assert seen_image.shape == expected.shape
+    value = float(psnr(torch.from_numpy(seen_image), torch.from_numpy(expected)))
+    assert value >= 40.0, (value, seen)
+
+
+def test_splats_the_view_cannot_show_are_left_out_before_the_shader(tmp_path):
+    """Gaussians spread far beyond the view (behind the camera, off to every side, some large
+    enough to reach in from outside): the viewer hands the shader only those whose 3-sigma
+    box can meet the image, and draws what recon renders (nothing it needs was left out)."""
+    g = random_gaussians(400, seed=7)
+    rng = np.random.default_rng(8)
+    g["means"] = rng.uniform(-3.0, 3.0, (400, 3)).astype(np.float32)
+    g["log_scales"] = np.log(rng.uniform(0.01, 0.4, (400, 3))).astype(np.float32)
+    camera = view_camera(96, 72)
+    # 40 round, opaque ones centred 0.5-2 sigma outside the image's edges: their tails are in it
+    z, sigma = 1.5, 0.15
+    sigma_px = float(camera.K[0, 0, 0]) * sigma / z
+    edge = rng.integers(0, 4, 40)
+    along, out = rng.uniform(0, 1, 40), rng.uniform(0.5, 2.0, 40) * sigma_px
+    u = np.where(edge == 0, -out, np.where(edge == 1, 96 + out, along * 96))
+    v = np.where(edge == 2, -out, np.where(edge == 3, 72 + out, along * 72))
+    K_inv = torch.linalg.inv(camera.K[0]).numpy()
+    cam_points = (K_inv @ np.stack([u, v, np.ones(40)]) * z).T
+    world_from_cam = torch.linalg.inv(camera.cam_from_world[0]).numpy()
+    g["means"][:40] = cam_points @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+    g["log_scales"][:40] = np.log(sigma)
+    g["opacity_logits"][:40] = 3.0
+    terms = {"sh_degree": 1, "antialiased": True, "background": [0.5, 0.5, 0.5], "near": 0.01,
+             "intervals": None}  # fmt: skip
+    doc = one_camera_doc(camera, splat_entry(g, terms), terms)
+    expected = recon_render(g, camera, terms)
+    seen_image, seen = browser_render(tmp_path / "page", doc)
+    assert seen["errors"] == [], seen
+    assert seen["drawn"]["gaussians"] == 400 and seen["drawn"]["visible"] < 300, str(seen["drawn"])
     value = float(psnr(torch.from_numpy(seen_image), torch.from_numpy(expected)))
     assert value >= 40.0, (value, seen)
 
@@ -148,14 +202,7 @@ def test_packed_gaussians_are_drawn_as_they_decode(tmp_path):
     entry = splat_entry(g, terms, exact_max=0)
     assert entry["encoding"] == "pack" and "means" not in entry
     decoded = unpack_splats(entry, entry["bytes"])
-    doc = {
-        "cameras": [camera_entry(camera, "view", "test")],
-        "splats": entry,
-        "background": terms["background"],
-        "near": 0.01,
-        "centre": [0.0, 0.0, 0.0],
-        "frustum_size": 0.1,
-    }
+    doc = one_camera_doc(camera, entry, terms)
     expected = recon_render(decoded, camera, terms)
     seen_image, seen = browser_render(tmp_path / "page", doc)
     assert seen["errors"] == [] and seen["string_intact"], seen
@@ -184,6 +231,72 @@ def test_packed_gaussians_are_drawn_as_they_decode(tmp_path):
     assert not seen["string_intact"]  # garbled by the charset: read from the script's bytes
     assert [e for e in seen["errors"] if "favicon.ico" not in e] == [], seen
     assert float(psnr(torch.from_numpy(served), torch.from_numpy(expected))) >= 40.0
+
+
+def snapshot_image(url: str) -> np.ndarray:
+    png = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float32) / 255
+
+
+def test_a_moving_view_keeps_its_frame_budget_and_rests_in_full(tmp_path):
+    """While the view moves, a frame is drawn at the level of detail the last one's time
+    allows (`nextLod`'s worked examples: a coarser resolution first, then fewer Gaussians);
+    at half resolution it is recon's render at half the size, bilinearly upsampled; at half
+    the Gaussians, the most prominent half (opacity x cube root of det Sigma) is drawn; once
+    the view rests (SETTLE_MS), the full frame again, pixel for pixel."""
+    import torch.nn.functional as F
+
+    from recon.gaussians.projection import covariance_3d
+
+    g = random_gaussians(400, seed=5)
+    camera = view_camera(96, 72)
+    terms = {"sh_degree": 2, "antialiased": False, "background": [0.2, 0.3, 0.9], "near": 0.01,
+             "intervals": None}  # fmt: skip
+    doc = one_camera_doc(camera, splat_entry(g, terms), terms)
+    viewer = "const v = window.reconViewers.scene;"
+    with opened_viewer(tmp_path / "page", doc) as driver:
+        examples = driver.execute_script(
+            "const L = window.reconLod; return [L.nextLod({scale: 1, share: 1}, 800),"
+            " L.nextLod({scale: 0.25, share: 1}, 100), L.nextLod({scale: 0.25, share: 0.5}, 20),"
+            " L.nextLod({scale: 0.5, share: 1}, 40), L.lodFor(1600), L.lodFor(10)]"
+        )
+        full = driver.execute_script(
+            viewer + "v.showCameras = false; v.setCamera(0, true); return v.snapshot()"
+        )
+        half = driver.execute_script(
+            viewer
+            + "v.lod = {scale: 0.5, share: 1}; v.render(true); return [v.snapshot(), v.drawn]"
+        )
+        some = driver.execute_script(
+            viewer + "v.lod = {scale: 1, share: 0.5}; v.render(true);"
+            "return [v.drawn, Array.from(v.order.subarray(0, v.drawn.visible))]"
+        )
+        time.sleep(0.6)
+        rest = driver.execute_script(viewer + "return [v.snapshot(), v.drawn]")
+        errors = console_errors(driver)
+    assert errors == []
+    lods = [(round(e["scale"], 4), round(e["share"], 4)) for e in examples]
+    assert lods == [(0.25, 1), (0.25, 0.475), (0.25, 1), (0.5, 1), (0.25, 0.475), (1, 1)]
+    # half resolution: recon's render of the camera at 48 x 36, upsampled (half-pixel centres)
+    assert (half[1]["width"], half[1]["height"], half[1]["gaussians"]) == (48, 36, 400)
+    small = Cameras(camera.K.clone(), camera.cam_from_world, torch.tensor([48]), torch.tensor([36]))
+    small.K[:, :2] *= 0.5
+    coarse = torch.from_numpy(recon_render(g, small, terms)).permute(2, 0, 1)[None]
+    upsampled = F.interpolate(coarse, size=(72, 96), mode="bilinear", align_corners=False)[0]
+    seen = torch.from_numpy(snapshot_image(half[0])).permute(2, 0, 1)
+    assert float(psnr(seen, upsampled)) >= 40.0
+    # half the Gaussians: the most prominent half
+    cov = covariance_3d(torch.from_numpy(g["quats"]).double(),
+                        torch.from_numpy(g["log_scales"]).double())  # fmt: skip
+    opacity = torch.sigmoid(torch.from_numpy(g["opacity_logits"]).double())
+    prominence = opacity * torch.linalg.det(cov).clamp(min=0) ** (1 / 3)
+    assert some[0]["gaussians"] == 200
+    chosen = prominence[torch.tensor(some[1])]  # float32 in the browser: near-ties may swap
+    assert len(set(some[1])) == some[0]["visible"] <= 200
+    assert float(chosen.min()) >= float(prominence.sort(descending=True).values[199]) * (1 - 1e-5)
+    # at rest: the full frame
+    assert rest[1]["scale"] == 1 and rest[1]["gaussians"] == 400
+    assert np.array_equal(snapshot_image(rest[0]), snapshot_image(full))
 
 
 def test_a_click_on_a_camera_flies_to_it(tmp_path):
@@ -368,10 +481,7 @@ def test_sfm_points_travel_as_16_bit_fractions_and_are_drawn_where_they_are(tmp_
     p = camera.cam_from_world[0] @ torch.tensor([0.0, 0.0, 0.0, 1.0])
     u = round(float(camera.K[0, 0, 0] * p[0] / p[2] + camera.K[0, 0, 2]))
     v = round(float(camera.K[0, 1, 1] * p[1] / p[2] + camera.K[0, 1, 2]))
-    page = write_page(tmp_path / "page", "scene", doc)
-    with chromium_driver(webgl=True) as driver:
-        driver.get(page.as_uri())
-        wait_until_ready(driver)
+    with opened_viewer(tmp_path / "page", doc) as driver:
         url = driver.execute_script(
             "const w = window.reconViewers.scene; w.showCameras = false; w.showPoints = true;"
             "w.setCamera(0, true); return w.snapshot();"
