@@ -589,8 +589,9 @@ def build(config: GaussiansConfig, scene: SceneInfo) -> GaussianModel:
 # had planned 2,099 steps for a 10-minute run that made 3,642, and 2,758 for 30 minutes that
 # made 6,479: the densification stopped and the lr decayed long before the end. The throughput
 # probe's first steps, same machine: 8.2 ms + 1 / 1.9M s a pixel, fitted to both benchmark
-# scenes (fox's 13.6k sfm Gaussians 6-14 % faster than that, lego-200's 4k random ones 9 %
-# slower), so either sits well inside the prior's tolerance.
+# scenes (fox's 13.6k sfm Gaussians of the earlier sfm settings 6-14 % faster than that, today's
+# 7.9k about the same; lego-200's 4k random ones 9 % slower), so either sits well inside the
+# prior's tolerance.
 RESOLUTION = ResolutionPolicy(
     pixels_per_s=450e3,
     pixels_per_step=0.0,

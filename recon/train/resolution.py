@@ -351,8 +351,8 @@ def measure_speed(
 ) -> tuple[Speed, dict]:
     """The device's `Speed` for this run, and what was measured (for run.json): the probe
     (`throughput.run_probe`) of a throw-away model built from the run's config (and at most
-    `policy.probe_points` sfm points: `probe_scene`) on `PROBE_VIEWS` training views, settled against the prior on a CPU
-    (`throughput.settled_speed`); the prior where nothing depends on it or the method has no
+    `policy.probe_points` sfm points: `probe_scene`) on `PROBE_VIEWS` training views, settled
+    against the prior on a CPU (`throughput.settled_speed`); the prior where nothing depends on it or the method has no
     reference probe (off a CPU, the reference machine's figures)."""
     cpu = device.type == "cpu"
     prior = prior_speed(threads(cfg)) if cpu else REFERENCE
