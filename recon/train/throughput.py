@@ -41,6 +41,15 @@ MAX_SPEEDUP = 1e4  # a speed is clamped to [1 / this, this] (a degenerate fit: n
 # measured figures would flip them from run to run and scene to scene. A device off by more
 # (another thread count, a GPU) is measured.
 PRIOR_TOLERANCE = 1.5
+# ... and slower than the prior by up to this factor: the probe errs towards the prior's longer
+# plan, since a step plan too long is shortened by the replanner and one too short is not (its
+# schedules end early). llff_flower's probe steps run 0.62-0.70x the prior's speed on the
+# reference machine itself, where its whole runs step at the prior's rate (1.34 steps/s at
+# full size, the prior 1.28): at 1 / 1.5 its 10-minute runs flipped between the prior's plan
+# (2,337 steps made, 28.21 dB at the photos' size) and a measured one of 1,781 (2,335 made,
+# its schedules over before the last quarter: 27.32 dB;
+# bench/results/2026-11-29-vm-x86_64-2cpu-llff-flower-996860d.md).
+PRIOR_TOLERANCE_SLOWER = 2.0
 PROBE_VIEWS = 2  # training views the probe trains on (the first and last; read at full size)
 PROBE_SIDES = (128, 256)  # longer sides of the probe levels of a whole-image-a-step method
 PROBE_WARMUP = 2  # untimed steps at each level (first-step allocations, caches, compilation)
@@ -186,13 +195,15 @@ def settled_speed(
     samples: list[ProbeSample],
     prior: Speed | None,
     tolerance: float = PRIOR_TOLERANCE,
+    tolerance_slower: float = PRIOR_TOLERANCE_SLOWER,
 ) -> Speed:
     """The speed the run uses: the prior (one factor for both costs, `prior_speed`) while every
-    probe step took within a factor `tolerance` of what the prior predicts for it (the reference
-    probe's time over the prior speed), else the measured speed (`PRIOR_TOLERANCE` says why).
-    No prior (a GPU, whose speed a CPU's threads do not tell): the probe's steps are the run's
-    (`device_speed`). Example:
-    prior 1x, probe steps 10 % slower than the reference's -> the prior; 2x faster -> measured."""
+    probe step took what the prior predicts for it (the reference probe's time over the prior
+    speed) up to `tolerance` times faster or `tolerance_slower` times slower, else the measured
+    speed (`PRIOR_TOLERANCE` and `PRIOR_TOLERANCE_SLOWER` say why). No prior (a GPU, whose speed
+    a CPU's threads do not tell): the probe's steps are the run's (`device_speed`). Example:
+    prior 1x, probe steps 10 % slower than the reference's, or 1.8x slower -> the prior; 1.8x
+    faster, or 2.5x slower -> measured."""
     note = "steps of " + ", ".join(
         f"{s.pixels / 1e3:.1f}k px in {s.step_s * 1e3:.1f} ms ({s.pixels / s.step_s / 1e3:.0f}k px/s)"
         for s in samples
@@ -204,12 +215,13 @@ def settled_speed(
             reference_probe_s(policy, s.pixels) / (prior.overhead * s.step_s) for s in samples
         ]
         note += ": " + "/".join(f"{r:.2f}" for r in ratios) + "x the prior's speed"
-        if all(1 / tolerance <= r <= tolerance for r in ratios):
+        if all(1 / tolerance_slower <= r <= tolerance for r in ratios):
             return Speed(
                 prior.overhead,
                 prior.pixels,
                 prior.source,
-                f"{note}, within {tolerance:g}x: the prior stands, {prior.reason}",
+                f"{note}, within {tolerance_slower:g}x slower / {tolerance:g}x faster: the "
+                f"prior stands, {prior.reason}",
             )
     speed = measured_speed(policy, samples) if prior is not None else device_speed(policy, samples)
     return Speed(

@@ -414,3 +414,25 @@ def test_the_probe_builds_its_model_from_the_capped_points(tmp_path):
     assert built and set(built) == {300}
     assert probe["probe"]["levels"] == [1] and probe["probe"]["samples"][0]["steps"] >= 2
     assert speed.overhead > 0
+
+
+@pytest.mark.parametrize("noise", [1.0, 1.15])
+def test_a_forward_facing_capture_whose_probe_runs_slow_keeps_the_prior_plan(noise):
+    """llff_flower on the reference machine (990 x 736, 29 training views): its 3dgs probe steps
+    (the slowest of 2026-11-29's: 11.3k px in 22.9 ms, 45.4k in 47.2 ms) run 0.62 / 0.68x the
+    prior's speed (also 15 % slower here), where its whole runs step at the prior's rate. Within
+    PRIOR_TOLERANCE_SLOWER they keep the prior: 10 minutes at 1/2 and a plan of ~2,580 steps
+    (2,335 made), not the measured 1,781 that ended its schedules early."""
+    from recon.models.splatting import RESOLUTION
+
+    samples = [ProbeSample(11316, 0.0229 * noise, 32), ProbeSample(45448, 0.0472 * noise, 32)]
+    speed = settled_speed(RESOLUTION, samples, prior_speed(2))
+    assert speed.source == "prior" and (speed.overhead, speed.pixels) == (1.0, 1.0), speed.reason
+    flower = (990, 736, 29)
+    res = choose_resolution(*flower, RESOLUTION, 600, 0, speed, detail=lambda k: 33.0)
+    assert (res.downscale, res.width, res.height) == (2, 495, 368)
+    steps = planned_steps(495, 368, RESOLUTION, 600, 0, speed)
+    assert 2335 <= steps <= 2700
+    measured = settled_speed(RESOLUTION, samples, prior_speed(2), tolerance_slower=1.5)
+    assert measured.source == "measured"  # the former tolerance: a plan far too short
+    assert planned_steps(495, 368, RESOLUTION, 600, 0, measured) < 2000

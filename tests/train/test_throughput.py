@@ -7,6 +7,7 @@ import torch
 from recon.models.base import Model, ResolutionPolicy
 from recon.train.throughput import (
     PRIOR_TOLERANCE,
+    PRIOR_TOLERANCE_SLOWER,
     PROBE_STEPS,
     PROBE_WARMUP,
     REFERENCE,
@@ -78,14 +79,20 @@ def test_measured_speed_worked_examples():
 
 def test_settled_speed_prefers_the_prior_within_the_tolerance():
     ref = [ProbeSample(10e3, 0.013, 8), ProbeSample(40e3, 0.028, 8)]  # the reference's own
-    for slower in (1.0, 1.2, 1 / 1.2, 0.99 * PRIOR_TOLERANCE, 1.01 / PRIOR_TOLERANCE):
+    within = (1.0, 1.2, 1 / 1.2, 0.99 * PRIOR_TOLERANCE_SLOWER, 1.01 / PRIOR_TOLERANCE)
+    for slower in within:
         samples = [ProbeSample(s.pixels, s.step_s * slower, 8) for s in ref]
         speed = settled_speed(SPLATS, samples, prior_speed(2))
         assert speed.source == "prior" and speed.overhead == speed.pixels == 1.0, slower
         assert "the prior stands" in speed.reason
-    slow = settled_speed(SPLATS, [ProbeSample(s.pixels, s.step_s * 2, 8) for s in ref], REFERENCE)
+    # the bounds: up to 1.5x faster, 2x slower (a plan too long is shortened, one too short is not)
+    for slower in (0.99 / PRIOR_TOLERANCE, 1.01 * PRIOR_TOLERANCE_SLOWER):
+        samples = [ProbeSample(s.pixels, s.step_s * slower, 8) for s in ref]
+        assert settled_speed(SPLATS, samples, prior_speed(2)).source == "measured", slower
+    assert (PRIOR_TOLERANCE, PRIOR_TOLERANCE_SLOWER) == (1.5, 2.0)
+    slow = settled_speed(SPLATS, [ProbeSample(s.pixels, s.step_s * 4, 8) for s in ref], REFERENCE)
     assert slow.source == "measured"
-    assert (slow.overhead, slow.pixels) == (pytest.approx(0.5), pytest.approx(0.5))
+    assert (slow.overhead, slow.pixels) == (pytest.approx(0.25), pytest.approx(0.25))
     assert "measured" in slow.reason and "k px/s" in slow.reason
     # the prior of 4 threads predicts half the reference's probe time
     half = [ProbeSample(s.pixels, s.step_s / 2, 8) for s in ref]
