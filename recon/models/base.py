@@ -259,6 +259,12 @@ class Model(nn.Module):
     ) -> None:
         """Called after the update (densification and pruning edit `optimizers`' state)."""
 
+    def averaging(self, step: int) -> float:
+        """The window (steps) of the moving average of its parameters that the trainer keeps
+        from the end of 0-based `step` on and the run ends as (`recon.train.averaging`), or 0:
+        none at `step` (it asks for none, or its parameters may still change shape)."""
+        return 0
+
     @torch.no_grad()
     def render(self, camera: Cameras) -> dict[str, Tensor]:
         raise NotImplementedError

@@ -316,6 +316,14 @@ class GaussianModel(Model):
                 self._update_filter(data)
         stats["num_gaussians"] = float(self.num_gaussians)
 
+    def averaging(self, step: int) -> float:
+        """average_window of the planned run (schedule_steps, else default_steps), from the step
+        on which densification stopped changing the count (`Strategy.stop`)."""
+        c = self.config
+        if c.average_window <= 0 or step < self.strategy.stop:
+            return 0
+        return max(1.0, c.average_window * (c.schedule_steps or c.default_steps))
+
     def replan(self, schedule_steps: int, step: int) -> int:
         config = refit_schedules(self._planned, self.config, self._fractions, schedule_steps, step)
         if config == self.config:

@@ -188,6 +188,10 @@ class GaussiansConfig:
         "the scene length the means lr and the densification's size thresholds scale with: cameras (the reference's camera extent) | depth (the SfM points' median depth) | auto (depth for a forward-facing capture, whose camera spread is under half that depth)",
         choices=EXTENT_RULES,
     )
+    average_window: float = opt(
+        0.0,
+        "from the step densification stops on, keep an exponential moving average of the parameters over this fraction of the run's planned steps and end the run as it (0 = off: the run ends as its last step, as the reference)",
+    )
     seed: int = opt(0, "seeds random init, view order and split sampling")
     default_steps: int = opt(30_000, "steps when `recon train` is given no stopping rule")
 

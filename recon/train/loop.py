@@ -193,8 +193,11 @@ def run_loop(
             st.last_ckpt_wall = st.wall_s
             tick()
     require_finite_loss(host_stats(stats), st, log)
+    # the run ends as the average of its last iterates, where the model keeps one
+    if averaged := trainer.use_average():
+        log({"step": st.step, "wall_s": round(st.wall_s, 4), "event": "average", "steps": averaged})
     require_finite_parameters(model, st, log)
-    if held_cams is not None and st.last_psnr_wall < st.wall_s:
+    if held_cams is not None and (averaged or st.last_psnr_wall < st.wall_s):
         _evaluate(model, held_cams, held_imgs, cfg, st, log, interrupted, final=True)
         tick()
     return reason

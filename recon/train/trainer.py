@@ -10,7 +10,9 @@ for them and the photos have alpha) and hands it to every loss.
 
 A step, in order: `before_step`; the loss; optimizers (re)built where a model replaced its
 parameters; gradients cleared; backward; `after_backward`; each due optimizer's learning rates
-set (times `lr_scale`) and its update; `after_step`.
+set (times `lr_scale`) and its update; `after_step`; where the model asks for one
+(`Model.averaging`), the moving average of its parameters updated (`recon.train.averaging`),
+which the run ends as (`use_average`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from torch.profiler import record_function
 
 from recon.models.background import trains_on_random_background
 from recon.models.base import Model, OptimizerSpec, TrainData, TrainingBackground
+from recon.train.averaging import ParameterAverage
 
 # What a checkpoint written before the trainer existed called each optimizer's state.
 LEGACY_OPTIMIZER_KEYS = {
@@ -73,6 +76,7 @@ class Trainer:
         self.lr_scale = 1.0
         self.background: TrainingBackground | None = None  # chosen at the first step
         self._specs: dict[str, OptimizerSpec] = {}
+        self.average: ParameterAverage | None = None  # from the model's `averaging` step on
         self.sync_optimizers()
 
     def sync_optimizers(self) -> None:
@@ -115,13 +119,38 @@ class Trainer:
                         self.set_learning_rates(name, step)
                         optimizer.step()
         model.after_step(data, step, self.optimizers, stats)
+        self._update_average(step)
         return stats
+
+    def _update_average(self, step: int) -> None:
+        """The average of the parameters after `step`, where the model asks for one; begun
+        anew from them when they are not the tensors it averaged (resized or replaced)."""
+        window = self.model.averaging(step)
+        if not window:
+            return
+        params = list(self.model.parameters())
+        if self.average is None or not self.average.matches(params):
+            self.average = ParameterAverage(params)
+        else:
+            with record_function("train.average"):
+                self.average.update(params, window)
+
+    def use_average(self) -> int:
+        """End as the average: the model's parameters replaced by it, in place (the
+        optimizers' moments stay as they are). Returns the steps it averaged (0: none, the
+        parameters are left as they are)."""
+        params = list(self.model.parameters())
+        if self.average is None or not self.average.matches(params):
+            return 0
+        self.average.copy_to(params)
+        return self.average.count
 
     def state_dict(self) -> dict:
         """The optimizers' state and the model's own training state (`Model.training_state`)."""
         return {
             "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
             "model": self.model.training_state(),
+            **({"average": self.average.state_dict()} if self.average is not None else {}),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -141,3 +170,7 @@ class Trainer:
         for name, saved in state["optimizers"].items():
             if name in self.optimizers:
                 self.optimizers[name].load_state_dict(saved)
+        self.average = None
+        if "average" in state:
+            device = next(self.model.parameters()).device
+            self.average = ParameterAverage.from_state_dict(state["average"], device)

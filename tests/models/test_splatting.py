@@ -429,3 +429,20 @@ def test_antialiased_splats_bake_the_mean_compensation_given_the_training_camera
     plain = GaussianModel(config(), scene)
     plain.load_state_dict(model.state_dict())
     assert np.array_equal(plain.splats(data.cameras)["opacity_logits"], raw)
+
+
+def test_the_average_starts_when_densification_stops_and_resumes_exactly():
+    scene, data = synthetic_scene(size=24)
+    cfg = config(densify_start=5, densify_interval=10, densify_stop=30, schedule_steps=100,
+                 average_window=0.05)  # fmt: skip
+    model = GaussianModel(cfg, scene)
+    assert [model.averaging(s) for s in (0, 29, 30, 99)] == [0, 0, 5.0, 5.0]
+    assert GaussianModel(config(average_window=0.0), scene).averaging(99) == 0
+    straight, resumed, _ = straight_and_resumed(cfg, scene, data, saved_at=34, steps=40)
+    averages = [trainer_of(m).average for m in (straight, resumed)]
+    assert averages[0].count == averages[1].count == 10  # the ends of steps 30..39
+    for a, b in zip(averages[0].values, averages[1].values):
+        assert torch.equal(a, b)
+    last = straight.params["means"].detach().clone()
+    assert trainer_of(straight).use_average() == 10
+    assert not torch.equal(straight.params["means"], last)

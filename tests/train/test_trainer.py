@@ -98,3 +98,45 @@ def test_replaced_parameters_get_a_fresh_optimizer_and_state_round_trips():
     other = Trainer(model)
     other.load_state_dict(trainer.state_dict())
     assert set(other.optimizers) == {"main"}
+
+
+class Averaged(Recorder):
+    """The Recorder, asking for an average of its parameters over 10 steps from step 2 on."""
+
+    def averaging(self, step):
+        return 10 if step >= 2 else 0
+
+
+def test_the_run_ends_as_the_average_of_the_iterates_the_model_asked_for():
+    model, data = Averaged(), _data()
+    trainer = Trainer(model)
+    iterates = []
+    for step in range(6):
+        trainer.step(data, step)
+        iterates.append(model.color.detach().clone())
+    # averaged from the end of step 2 on: the iterates after steps 2..5, a plain mean (< 10)
+    expected = torch.stack(iterates[2:]).mean(0)
+    state = trainer.state_dict()
+    assert trainer.use_average() == 4
+    torch.testing.assert_close(model.color.detach(), expected)
+    resumed = Trainer(Averaged())  # a resumed run carries the average on
+    resumed.load_state_dict(state)
+    assert resumed.average.count == 4
+    torch.testing.assert_close(resumed.average.values[0], expected)
+
+
+def test_no_average_leaves_the_last_iterate_and_a_replaced_parameter_restarts_it():
+    model, data = Recorder(), _data()
+    trainer = Trainer(model)
+    trainer.step(data, 0)
+    last = model.color.detach().clone()
+    assert trainer.use_average() == 0 and "average" not in trainer.state_dict()
+    torch.testing.assert_close(model.color.detach(), last)
+    model = Averaged()
+    trainer = Trainer(model)
+    for step in range(4):
+        trainer.step(data, step)
+    model.color = torch.nn.Parameter(torch.zeros(2))  # resized (as densification does)
+    trainer.sync_optimizers()
+    trainer._update_average(4)
+    assert trainer.average.count == 1 and trainer.average.values[0].shape == (2,)
