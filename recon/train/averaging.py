@@ -6,9 +6,8 @@ iterates, 100 steps apart, wanders over 0.6 dB long after it stopped rising, and
 0.4 dB under the average of its last steps (bench/results/2026-11-29-3dgs-average.md).
 Averaging the iterates (Polyak & Juditsky 1992; Ruppert 1988) removes that noise without
 lowering the rates that still make progress; an exponential moving average with a window of
-`window` steps forgets
-the early, worse iterates of a long tail (as the weight averaging of Izmailov et al. 2018,
-"Averaging Weights Leads to Wider Optima", Sec. 3, but exponential).
+`window` steps forgets the early, worse iterates of a long tail (as the weight averaging of
+Izmailov et al. 2018, "Averaging Weights Leads to Wider Optima", Sec. 3, but exponential).
 
 The average starts from the parameters of the first step it is asked for, as a uniform mean
 while it holds fewer than `window` steps, an exponential one after (`average_weight`): no bias
@@ -65,7 +64,6 @@ class ParameterAverage:
 
     @classmethod
     def from_state_dict(cls, state: dict, device: torch.device | None = None) -> ParameterAverage:
-        average = cls.__new__(cls)
-        average.values = [v.to(device) if device is not None else v for v in state["values"]]
+        average = cls([v.to(device) if device is not None else v for v in state["values"]])
         average.count = int(state["count"])
         return average
