@@ -13,8 +13,12 @@ and recon's own rasterizer by tests/gaussians/test_gsplat_glue.py:
   sigmoid(opacity_logits), times the antialiasing compensation when antialiased (recon computes
   it from the conics: the same sqrt(det Sigma / det Sigma') as gsplat's `compensations`);
 - the 0.3 px^2 dilation (`projection.DILATION`, gsplat's `eps2d`) and the 1.3x guard band of
-  the Jacobian are the same; so are the near plane (depth > near) and the SH colours, which
-  recon evaluates itself (`projection.sh_colors`) and hands over as features;
+  the Jacobian are the same; so is the near plane (depth > near);
+- SH colours: gsplat's fused kernel evaluates the same real SH basis, in the same order and
+  signs (the 3DGS reference's), of the unit direction from the camera centre to the mean, with
+  its gradient reaching the means through that direction; recon adds the reference's 0.5 offset
+  and clamp (`projection.sh_colors`) and hands the colours over as features. One kernel each
+  way where the torch evaluation of degree 3 takes ~200 small ones a step;
 - radii: gsplat's are per axis, ceil(3.33 sqrt(Sigma'_xx)), ceil(3.33 sqrt(Sigma'_yy)) (3.33 =
   sqrt(2 ln 255): every pixel where alpha can reach 1/255), recon's one 3-sigma radius of the
   larger eigenvalue; recon's densification reads the larger of the two axes.
@@ -55,6 +59,7 @@ def _gsplat_ops() -> SimpleNamespace:
             isect_offset_encode,
             isect_tiles,
             rasterize_to_pixels,
+            spherical_harmonics,
         )
     except ImportError as e:
         raise RuntimeError(
@@ -66,6 +71,7 @@ def _gsplat_ops() -> SimpleNamespace:
         isect_tiles=isect_tiles,
         isect_offset_encode=isect_offset_encode,
         rasterize=rasterize_to_pixels,
+        sh=spherical_harmonics,
     )
 
 
@@ -114,6 +120,18 @@ def project(
         packed=False,
     )
     return means2d[0], conics[0], depths[0], radii[0]
+
+
+def sh_colors(
+    means: Tensor, sh_dc: Tensor, sh_rest: Tensor, degree: int, center: Tensor, visible: Tensor
+) -> Tensor:
+    """c = max(SH_degree(sh, d) + 0.5, 0), d = (mu - o) / |mu - o|, by gsplat's SH kernel
+    (`projection.sh_colors`' values and gradients): means (G, 3), sh_dc (G, 1, 3), sh_rest
+    (G, K - 1, 3) with K >= (degree + 1)^2, center (3,) the camera's, visible (G,) bool (the
+    others are skipped: 0.5, the offset alone, and no gradient) -> (G, 3)."""
+    coeffs = torch.cat([sh_dc, sh_rest], 1) if degree > 0 else sh_dc
+    colors = ops().sh(degree, means - center, coeffs, visible)
+    return torch.clamp_min(colors + 0.5, 0.0)
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:

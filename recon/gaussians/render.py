@@ -121,7 +121,7 @@ def project_splats_gsplat(
     antialiased: bool = False,
     size: tuple[int, int] | None = None,
 ) -> ProjectedSplats:
-    """`project_splats` by gsplat's fused projection (CUDA), colours by `sh_colors`."""
+    """`project_splats` by gsplat's fused projection and SH kernels (CUDA)."""
     g, dtype = gaussians, gaussians["means"].dtype
     W, H = size or image_size(camera)
     means2d, conics, depths, radii_xy = gsplat_glue.project(
@@ -136,7 +136,9 @@ def project_splats_gsplat(
     )
     radii = radii_xy.amax(-1).to(dtype)
     opacities = splat_opacities(g["opacity_logits"], conics, antialiased)
-    colors = _colors(g, camera, sh_degree)
+    center = camera.centers[0].to(dtype)
+    visible = (radii_xy > 0).all(-1)
+    colors = gsplat_glue.sh_colors(g["means"], g["sh_dc"], g["sh_rest"], sh_degree, center, visible)
     return ProjectedSplats(means2d, conics, depths, radii, opacities, colors, W, H, radii_xy)
 
 

@@ -137,3 +137,23 @@ def test_resized_pixel_centres_are_the_centres_of_the_pixel_blocks():
     assert torch.allclose(d_l[7, 11], d_block[0], atol=1e-12)
     assert not torch.allclose(d_f[7, 11], d_block[0], atol=1e-3)  # (sanity: another ray)
     assert level.width.item() == 160 and level.height.item() == 120
+
+
+def test_centres_are_the_inverse_transforms_translations():
+    """o = -R^T t: the translation of world_from_cam, and the point the camera maps to its
+    origin. Worked example: R a quarter turn about z, t = (1, 2, 3) -> o = (-2, 1, -3)."""
+    R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    M = torch.eye(4)
+    M[:3, :3], M[:3, 3] = R, torch.tensor([1.0, 2, 3])
+    gen = torch.Generator().manual_seed(0)
+    q = torch.linalg.qr(torch.randn(3, 3, 3, generator=gen, dtype=torch.float64))[0]
+    many = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    many[:, :3, :3], many[:, :3, 3] = q, torch.randn(3, 3, generator=gen, dtype=torch.float64)
+    for cfw in (M[None], many):
+        cams = Cameras(torch.eye(3, dtype=cfw.dtype).expand(len(cfw), 3, 3), cfw,
+                       torch.full((len(cfw),), 4), torch.full((len(cfw),), 3))  # fmt: skip
+        torch.testing.assert_close(cams.centers, invert_rigid(cfw)[:, :3, 3])
+        origin = (cfw[:, :3, :3] @ cams.centers[..., None])[..., 0] + cfw[:, :3, 3]
+        torch.testing.assert_close(origin, torch.zeros_like(origin), atol=1e-6, rtol=0)
+    torch.testing.assert_close(Cameras(torch.eye(3)[None], M[None], torch.tensor([4]),
+                               torch.tensor([3])).centers, torch.tensor([[-2.0, 1, -3]]))  # fmt: skip

@@ -15,7 +15,7 @@ import torch
 from recon.cameras import Cameras
 from recon.cameras.look_at import look_at
 from recon.gaussians import gsplat_glue
-from recon.gaussians.projection import covariance_3d, project_gaussians
+from recon.gaussians.projection import covariance_3d, project_gaussians, sh_colors
 from recon.gaussians.rasterize import rasterize_features
 from recon.gaussians.rasterize_torch import composite_tile_lists
 from recon.gaussians.render import composite_rgbd, project_splats
@@ -63,6 +63,12 @@ def torch_rasterize(
     return image[None], (1 - T)[None, ..., None]
 
 
+def torch_sh(degrees_to_use, dirs, coeffs, masks=None):
+    """`gsplat.spherical_harmonics` over its pure-torch twin: masked-out rows come out 0."""
+    colors = torch_impl._spherical_harmonics(degrees_to_use, dirs, coeffs)
+    return colors if masks is None else torch.where(masks[..., None], colors, 0.0)
+
+
 @pytest.fixture
 def torch_gsplat(monkeypatch):
     """The glue's gsplat entry points swapped for the pure-torch twins, and CPU tensors sent
@@ -75,6 +81,7 @@ def torch_gsplat(monkeypatch):
             isect_tiles=torch_impl._isect_tiles,
             isect_offset_encode=torch_impl._isect_offset_encode,
             rasterize=torch_rasterize,
+            sh=torch_sh,
         ),
     )
     monkeypatch.setattr(gsplat_glue, "uses_gsplat", lambda t: True)
@@ -230,6 +237,37 @@ def test_abs_grad_reaches_the_caller(torch_gsplat, monkeypatch):
     torch.testing.assert_close(theirs, ours, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_colours_match_recon(torch_gsplat, degree):
+    """gsplat's SH basis is recon's (the 3DGS reference's order and signs): the same colours
+    and the same gradients in the coefficients and, through the viewing direction, the means;
+    splats not visible are skipped (the offset's 0.5, no gradient)."""
+    g = random_gaussians(G=200, degree=3)
+    center = cameras()[1].centers[0]
+    visible = torch.rand(200, generator=torch.Generator().manual_seed(1)) > 0.2
+    sh = torch.cat([g["sh_dc"], g["sh_rest"][:, : (degree + 1) ** 2 - 1]], 1)
+
+    def colours_and_grads(ours: bool):
+        means, dc, rest = (g[k].clone().requires_grad_() for k in ("means", "sh_dc", "sh_rest"))
+        if ours:
+            colours = sh_colors(
+                means, torch.cat([dc, rest[:, : sh.shape[1] - 1]], 1), degree, center
+            )
+            colours = torch.where(visible[:, None], colours, 0.5)
+        else:
+            colours = gsplat_glue.sh_colors(means, dc, rest, degree, center, visible)
+        weights = torch.linspace(-1, 1, colours.numel(), dtype=F64).reshape(colours.shape)
+        (colours * weights).sum().backward()
+        grads = [torch.zeros_like(t) if t.grad is None else t.grad for t in (means, dc, rest)]
+        return colours, *grads
+
+    for theirs, ours in zip(colours_and_grads(False), colours_and_grads(True), strict=True):
+        torch.testing.assert_close(theirs, ours, rtol=1e-10, atol=1e-12)
+    colours, means_grad, _, _ = colours_and_grads(False)
+    assert (colours[~visible] == 0.5).all() and (means_grad[~visible] == 0).all()
+    assert (means_grad[visible].abs().sum(-1) > 0).all() == (degree > 0)
+
+
 def test_covariance_convention_matches_gsplat():
     """Quaternion order (w, x, y, z) and scales = exp(log_scales): Sigma = R S S^T R^T."""
     g = random_gaussians(G=20)
@@ -304,3 +342,89 @@ def test_an_ordinary_3dgs_step_through_the_glue_makes_no_host_round_trip(torch_g
         f"{inspect.getsourcefile(splatting_rules)}:{n}" for n in range(first, first + len(lines))
     }
     assert mode.seen and {where for _, where in mode.seen} <= host_only, mode.seen
+
+
+def _fused(fn, inside: list[int]):
+    """`fn` (a twin of a gsplat kernel) as one autograd node, its own ops in both passes marked
+    (`inside`) as a fused CUDA kernel's would be: one launch each way, not counted."""
+
+    def call(*args, **kwargs):
+        where = [i for i, a in enumerate(args) if isinstance(a, torch.Tensor) and a.requires_grad]
+        if not where or not torch.is_grad_enabled():
+            inside[0] += 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                inside[0] -= 1
+        held = {}
+
+        class Kernel(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx, *tensors):
+                inside[0] += 1
+                with torch.enable_grad():
+                    ctx.inputs = [t.detach().requires_grad_() for t in tensors]
+                    full = list(args)
+                    for i, t in zip(where, ctx.inputs, strict=True):
+                        full[i] = t
+                    ctx.outputs = fn(*full, **kwargs)
+                held["absgrad"] = getattr(ctx.inputs[0], "absgrad", None)
+                inside[0] -= 1
+                outs = ctx.outputs if isinstance(ctx.outputs, tuple) else (ctx.outputs,)
+                return tuple(None if o is None else o.detach() for o in outs)
+
+            @staticmethod
+            def backward(ctx, *grads):
+                inside[0] += 1
+                outs = ctx.outputs if isinstance(ctx.outputs, tuple) else (ctx.outputs,)
+                pairs = [(o, g) for o, g in zip(outs, grads) if g is not None and o is not None]
+                pairs = [(o, g) for o, g in pairs if o.requires_grad]
+                result = torch.autograd.grad(
+                    [o for o, _ in pairs], ctx.inputs, [g for _, g in pairs], allow_unused=True
+                )
+                inside[0] -= 1
+                return result
+
+        out = Kernel.apply(*[args[i] for i in where])
+        if held["absgrad"] is not None:
+            args[0].absgrad = held["absgrad"]
+        return out if isinstance(out, tuple) and len(out) > 1 else out[0]
+
+    return call
+
+
+def test_a_3dgs_step_on_the_gpu_path_makes_few_torch_calls(torch_gsplat, monkeypatch):
+    """A GPU step of 3dgs is bound by its kernel launches, not by the rasterizer (H200, lego:
+    8.2 ms a step, gsplat's kernels 1.1 ms of it). Counted on the CPU: the torch ops a step
+    dispatches outside gsplat's kernels (each fused kernel one launch, not counted), forward
+    and backward, the optimizers' included. With recon's torch SH and pytorch_msssim there were
+    497; gsplat's SH kernel, the grouped-convolution SSIM and the direct camera centre: 229."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from recon import devices
+    from recon.models.splatting import GaussianModel
+    from recon.models.splatting_config import PRESETS, GaussiansConfig
+    from tests.models.test_splatting import synthetic_scene
+
+    inside = [0]
+    fused = {k: _fused(v, inside) for k, v in vars(gsplat_glue.OPS).items()}
+    monkeypatch.setattr(gsplat_glue, "OPS", SimpleNamespace(**fused))
+    monkeypatch.setattr(devices, "uses_cpu_kernels", lambda t: False)
+
+    class Count(TorchDispatchMode):
+        calls = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if not inside[0]:
+                Count.calls += 1
+            return func(*args, **(kwargs or {}))
+
+    scene, data = synthetic_scene(size=48)
+    overrides = {"init": "random", "init_points": 300, "init_from_images": False}
+    overrides |= {"densify_start": 20, "densify_interval": 20, "sh_degree_interval": 30}
+    model = GaussianModel(GaussiansConfig(**{**PRESETS["gpu"], **overrides}), scene)
+    for step in range(95):  # past the SH degree's last increase (degree 3 at step 90)
+        train_step(model, data, step)
+    with Count():
+        train_step(model, data, 95)
+    assert 150 < Count.calls <= 260, Count.calls

@@ -34,3 +34,38 @@ def test_blur_transpose_is_the_adjoint():
     g = rng.random((2, 10, 7))
     assert np.isclose((_blur_valid(x, taps) * g).sum(), (x * _blur_transpose(g, taps)).sum())
     assert np.isclose(gaussian_taps().sum(), 1.0)
+
+
+def test_the_torch_path_matches_the_numba_one_and_gradcheck(monkeypatch):
+    """The torch algebra a GPU runs (`devices.uses_cpu_kernels` off) against the numba pair in
+    float64: value and gradient to round-off, and its hand-derived backward against finite
+    differences (torch.autograd.gradcheck)."""
+    from recon import devices
+
+    gen = torch.Generator().manual_seed(2)
+    y = torch.rand(3, 23, 31, generator=gen, dtype=torch.float64)
+    x = (y + 0.3 * torch.randn(3, 23, 31, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    x1 = x.clone().requires_grad_()
+    ours = ssim(x1, y)
+    (g_numba,) = torch.autograd.grad(ours, x1)
+    monkeypatch.setattr(devices, "uses_cpu_kernels", lambda t: False)
+    x2 = x.clone().requires_grad_()
+    theirs = ssim(x2, y)
+    (g_torch,) = torch.autograd.grad(theirs, x2)
+    torch.testing.assert_close(theirs, ours, rtol=1e-13, atol=1e-14)
+    torch.testing.assert_close(g_torch, g_numba, rtol=1e-10, atol=1e-15)
+    small = x[:, :14, :13].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: ssim(t, y[:, :14, :13]), (small,))
+    assert abs(ssim(y.clone(), y).item() - 1.0) < 1e-12
+
+
+def test_the_torch_blurs_are_the_numba_ones_and_adjoint():
+    from recon.gaussians.ssim import blur_transpose, blur_valid
+
+    rng = np.random.default_rng(3)
+    x, g = rng.random((4, 20, 17)), rng.random((4, 10, 7))
+    taps = gaussian_taps()
+    torch.testing.assert_close(blur_valid(torch.from_numpy(x)).numpy(), _blur_valid(x, taps))
+    torch.testing.assert_close(
+        blur_transpose(torch.from_numpy(g)).numpy(), _blur_transpose(g, taps)
+    )
