@@ -1,29 +1,32 @@
-"""`make gpu-check`: recon on an NVIDIA GPU, measured in one command (about 10 minutes on an
-H100/H200-class GPU).
+"""`make gpu-check`: recon on an NVIDIA GPU, measured in one command (an estimated 8-9
+minutes on an H100/H200-class GPU, not yet timed in this order: the three target runs alone
+train for 7).
 
 On a Linux machine with an NVIDIA GPU, its driver, Python, a CUDA build of torch (whatever
 version is installed; it is never replaced) and nvcc, with no network:
 1. installs what recon needs and the machine lacks from the wheels `make gpu-wheels` prepared
    (`--wheels`, default .gpu-wheels/) into a folder of its own (.gpu-site/, on PYTHONPATH; no
    venv, so the machine's torch stays the one in use);
-2. compiles gsplat's CUDA code (`gsplat.cuda._backend`, for this GPU's architecture only) and
-   times it;
-3. imports lego-400 (the 100 training views; every 8th of the 200 test views, 25, held out)
+2. imports lego-400 (the 100 training views; every 8th of the 200 test views, 25, held out)
    and fox (its COLMAP poses; every 8th photo held out) with `recon sfm --from-transforms`;
-4. trains every method on lego-400 for `--budget` seconds (3dgs, ngp, nerf, plenoxel, sdf)
-   and 3dgs on fox for `--fox-budget` seconds with the defaults and `--device cuda`, in two
-   phases: nerf, plenoxel and sdf (and the CUDA tests that need no gsplat) all at once while
-   gsplat compiles; then the three runs the targets are read from (ngp and 3dgs on lego, 3dgs
-   on fox) one at a time, each with the machine to itself. Processes sharing a GPU take turns
-   on it (time slices), and a step that waits for the GPU (a host sync) waits for the others'
-   turns too: on the H200, lego ngp made 691 steps in 120 s beside the two 3dgs runs and 2,267
-   alone. `--serial` runs the first phase one at a time as well;
-5. scores each run with `recon eval` (lego: the 25 test views at 400 px; fox: the held-out
-   photos at 1/4 of their size) and reads its held-out PSNR at 60 s and at the end from the
-   run's log (a periodic evaluation of the same views every 60 s of training);
+3. first phase, the runs the issue's targets are read from, one at a time, each with the GPU
+   to itself, with the defaults and `--device cuda`: ngp on lego-400 for `--budget` seconds
+   (gsplat's CUDA build, `gsplat.cuda._backend` for this GPU's architecture, timed, and fox's
+   import run on the host beside it), 3dgs on fox for `--fox-budget` seconds, 3dgs on lego-400.
+   Processes sharing a GPU take turns on it (time slices), and a step that waits for the GPU
+   (a host sync) waits for the others' turns too: on the H200, lego ngp made 691 steps in
+   120 s beside two 3dgs runs and 2,267 alone;
+4. second phase, all at once (`--serial`: one at a time): nerf, plenoxel and sdf on lego-400
+   for `--other-budget` seconds, the scoring of every run with `recon eval` (lego: the 25 test
+   views at 400 px; fox: the held-out photos at 1/4 of their size; quality does not depend on
+   what shares the GPU) and, with `--tests`, tests/e2e/test_cuda.py;
+5. reads each run's held-out PSNR at 60 s and at the end from its log (a periodic evaluation
+   of the same views every 60 s of training);
 6. writes one JSON: device, versions, compile time, and per run steps, steps/s, peak GPU
-   memory, held-out PSNR at 60 s and at the end, PSNR / SSIM / LPIPS.
-Without a CUDA device it says so in one line and exits 2.
+   memory, held-out PSNR at 60 s and at the end, PSNR / SSIM / LPIPS; after every run, so a
+   check cut short still leaves what it measured.
+Without a CUDA device it says so in one line and exits 2; `--device cpu` rehearses the whole
+flow on a CPU (no gsplat).
 
     python pipelines/gpu_check.py [--data ../shared/data] [--wheels .gpu-wheels] [--out FILE]
 """
@@ -76,14 +79,28 @@ def log(msg: str) -> None:
     print(f"[gpu-check {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def importable(module: str) -> bool:
+def importable(modules: list[str]) -> set[str]:
+    """Those of `modules` that import, in one child process (its imports, not this one's)."""
+    code = (
+        "import importlib, json, sys\n"
+        "ok = []\n"
+        "for m in sys.argv[1:]:\n"
+        "    try:\n"
+        "        importlib.import_module(m)\n"
+        "        ok.append(m)\n"
+        "    except Exception:\n"
+        "        pass\n"
+        "print(json.dumps(ok))"
+    )
     proc = subprocess.run(
-        [sys.executable, "-c", f"import {module}"],
+        [sys.executable, "-c", code, *modules],
         check=False,
         capture_output=True,
+        text=True,
         env=child_env(),
     )
-    return proc.returncode == 0
+    lines = proc.stdout.strip().splitlines()
+    return set(json.loads(lines[-1])) if proc.returncode == 0 and lines else set()
 
 
 def child_env(**extra: str) -> dict:
@@ -96,8 +113,9 @@ def install(wheels: Path) -> dict:
     replaced). Returns {module: "present" | wheel name | "missing"}."""
     found = {}
     available = sorted(wheels.glob("*.whl")) if wheels.is_dir() else []
+    present = importable(list(NEEDS))
     for module, dist in NEEDS.items():
-        if importable(module):
+        if module in present:
             found[module] = "present"
             continue
         wheel = next((w for w in available if w.name.lower().startswith(dist.lower() + "-")), None)
@@ -202,35 +220,28 @@ def psnr_at(psnrs: list[tuple[float, float]], wall_s: float) -> dict | None:
     return None if at is None else {"wall_s": at[0], "psnr": at[1]}
 
 
-def train_and_eval(
-    ws: Path,
-    method: str,
-    budget: float,
-    eval_max_side: int,
-    downscale: int,
-    device: str,
-    preset: str = "auto",
-    score: bool = True,
+def train(
+    ws: Path, method: str, budget: float, eval_max_side: int, device: str, preset: str = "auto"
 ) -> dict:
+    """`recon train` of `method` on `ws` for `budget` seconds with the defaults (or `preset`),
+    held-out evaluations every EVAL_EVERY_S; its steps, speed, memory and held-out PSNRs (not
+    scored: `score`)."""
     run = f"{method}-{'' if preset == 'auto' else preset + '-'}{budget:g}s"
     t0 = time.perf_counter()
     recon(
         "train", "-w", str(ws), "--method", method, "--run", run, "--device", device,
         "--time-budget", f"{budget:g}", "--eval-every", f"{EVAL_EVERY_S:g}",
-        "--eval-views", "25", "--eval-max-side", str(eval_max_side), "--threads", "2", "--preset", preset,
+        "--eval-views", "25", "--eval-max-side", str(eval_max_side), "--threads", "2",
+        "--preset", preset,
     )  # fmt: skip
     train_s = time.perf_counter() - t0
     doc = json.loads((ws / "runs" / run / "run.json").read_text())
     psnrs = heldout_psnrs(ws / "runs" / run / "log.jsonl")
-    if score:
-        ev = recon("eval", "-w", str(ws), "--run", run, "--downscale", str(downscale))
-        metrics = {**ev[run]["mean"], "size": ev[run]["resolution"], "views": ev[run]["views"]}
-    else:  # the run's own last held-out evaluation (lego: the same 25 views at the same size)
-        metrics = {"psnr": psnrs[-1][1] if psnrs else None, "source": "heldout_end"}
     steps, wall = doc.get("steps", 0), doc.get("train_wall_s", 0.0)
     return {
         "scene": ws.name,
         "method": method,
+        "run": run,
         "preset": doc.get("preset"),
         "budget_s": budget,
         "train_command_s": round(train_s, 1),
@@ -241,17 +252,25 @@ def train_and_eval(
         "peak_gpu_mb": doc.get("peak_gpu_mb"),
         "heldout_psnr_60s": psnr_at(psnrs, EVAL_EVERY_S),
         "heldout_psnr_end": psnr_at(psnrs, psnrs[-1][0]) if psnrs else None,
-        "eval": metrics,
         "gaussians": doc.get("model_stats", {}).get("gaussians"),
     }
 
 
-def cuda_tests(select: str) -> dict:
-    """tests/e2e/test_cuda.py's tests matching `select` (pytest -k): every method trains, renders
-    and resumes on CUDA. Its exit status and last lines."""
+def score(ws: Path, done: dict, downscale: int) -> dict:
+    """`recon eval` of a trained run (lego: the 25 test views at 400 px; fox: the held-out
+    photos at 1/`downscale`): PSNR / SSIM / LPIPS into done["eval"]. Quality does not depend on
+    what else shares the GPU, so scoring waits for the second phase."""
+    ev = recon("eval", "-w", str(ws), "--run", done["run"], "--downscale", str(downscale))
+    run = done["run"]
+    done["eval"] = {**ev[run]["mean"], "size": ev[run]["resolution"], "views": ev[run]["views"]}
+    return done
+
+
+def cuda_tests() -> dict:
+    """tests/e2e/test_cuda.py: every method trains, renders and resumes on CUDA. Its exit
+    status and last lines."""
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", select]
-        + ["tests/e2e/test_cuda.py"],
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/e2e/test_cuda.py"],
         check=False,
         capture_output=True,
         text=True,
@@ -260,7 +279,6 @@ def cuda_tests(select: str) -> dict:
     )
     lines = proc.stdout.strip().splitlines()
     return {
-        "select": select,
         "exit": proc.returncode,
         "summary": lines[-1] if lines else "",
         "tail": lines[-40:],
@@ -330,17 +348,22 @@ def main() -> int:
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--wheels", type=Path, default=ROOT / ".gpu-wheels")
     ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--budget", type=float, default=120.0, help="seconds per lego-400 run")
+    ap.add_argument("--budget", type=float, default=120.0, help="seconds per lego-400 target run")
     ap.add_argument("--fox-budget", type=float, default=180.0, help="0: no fox run")
+    ap.add_argument(
+        "--other-budget",
+        type=float,
+        default=30.0,
+        help="seconds per run of the methods without a target (nerf, plenoxel, sdf): short, "
+        "so that the check ends within about 8 minutes",
+    )
     ap.add_argument("--methods", default=",".join(METHODS))
-    ap.add_argument("--serial", action="store_true", help="one run at a time (exclusive timings)")
+    ap.add_argument("--serial", action="store_true", help="the second phase one job at a time")
     ap.add_argument(
         "--also-presets", default="", help="3dgs runs on fox with these presets too (e.g. fast)"
     )
     ap.add_argument(
-        "--tests",
-        action="store_true",
-        help="also run tests/e2e/test_cuda.py (beside the 3dgs runs)",
+        "--tests", action="store_true", help="also run tests/e2e/test_cuda.py (second phase)"
     )
     ap.add_argument(
         "--heldout-only",
@@ -390,6 +413,7 @@ def main() -> int:
             out.write_text(json.dumps(result, indent=1) + "\n")
 
     def record(job, *a):
+        """job(*a) -> its result, recorded; a failure is recorded and the others go on."""
         try:
             done = job(*a)
         except Exception as e:  # noqa: BLE001 (a failing run is reported, the others go on)
@@ -398,101 +422,94 @@ def main() -> int:
             log(f"FAILED {job.__name__} {a[1:3]}: {str(e)[-500:]}")
             save()
             return None
-        with lock:
-            result["runs"].append(done)
-        log(
-            f"{done['scene']} {done['method']}: {done['eval'].get('psnr')} dB, {done['steps']} steps"
-        )
+        if job is train:
+            with lock:
+                result["runs"].append(done)
+            log(f"{done['scene']} {done['method']}: {done['steps']} steps, {done['steps_per_s']}/s")
+        elif job is score:
+            log(f"{done['scene']} {done['method']} scored: {done['eval'].get('psnr')} dB")
         save()
         return done
 
-    # Two phases, so that the runs the issue's targets are read from (lego ngp, lego 3dgs, fox
-    # 3dgs) share the machine with nothing but each other: first gsplat's build, the imports,
-    # the other volume methods and the CUDA tests that need no gsplat; then the target runs.
+    # Two phases. First the runs the issue's targets are read from (ngp and 3dgs on lego, 3dgs
+    # on fox), one at a time, each with the GPU to itself: processes sharing a GPU take turns on
+    # it (time slices), and a step that waits for the GPU waits out the others' turns too (on
+    # the H200, lego ngp made 691 steps in 120 s beside two 3dgs runs and 2,267 alone). Work on
+    # the host goes beside them: gsplat's build (beside ngp, which needs none) and fox's import.
+    # Then, all at once: the methods without a target (short budgets), the scoring of every run
+    # (quality does not depend on what shares the GPU) and the CUDA tests.
     result["phases"] = {
-        "1": "gsplat's build beside nerf, plenoxel, sdf and the gsplat-free CUDA tests"
-        + (", one at a time" if args.serial else ", all at once"),
-        "2": "ngp and 3dgs on lego, 3dgs on fox: one at a time, each with the machine to itself",
+        "1": "ngp on lego (gsplat's build beside it on the host), then 3dgs on fox and on lego: "
+        "one at a time, each with the GPU to itself",
+        "2": "nerf, plenoxel and sdf on lego, the scoring of every run and the CUDA tests"
+        + (": one at a time" if args.serial else ": all at once"),
     }
     dev = args.device
     methods = [m for m in methods if m in METHODS]
     fox_too = "3dgs" in methods and args.fox_budget > 0
-    score = not args.heldout_only
-    builder = ThreadPoolExecutor(max_workers=1)  # gsplat's build is no run: never queued behind one
-    solo = ThreadPoolExecutor(max_workers=1)  # phase 2
-    with builder, solo, ThreadPoolExecutor(max_workers=1 if args.serial else 12) as pool:
-        gsplat = "3dgs" in methods and dev == "cuda"
-        compiling = builder.submit(compile_gsplat) if gsplat else None
-        lego, fox = WORK / "lego", WORK / "fox"
-        fox_import = None
+    lego, fox = WORK / "lego", WORK / "fox"
+    targets = []  # (workspace, method, budget, eval max side, eval downscale)
+    if "ngp" in methods:
+        targets.append((lego, "ngp", args.budget, 800, 1))
+    if fox_too:
+        targets.append((fox, "3dgs", args.fox_budget, 480, 4))
+    if "3dgs" in methods:
+        targets.append((lego, "3dgs", args.budget, 800, 1))
+    others = [m for m in methods if m not in TARGET_METHODS]
+    host = ThreadPoolExecutor(max_workers=2)  # gsplat's build, fox's import
+    with host, ThreadPoolExecutor(max_workers=1 if args.serial else 12) as pool:
+        compiling = host.submit(compile_gsplat) if "3dgs" in methods and dev == "cuda" else None
+        importing = None
         if fox_too:
             fox_src = str(args.data / "fox")
-            fox_import = pool.submit(recon, "sfm", "--from-transforms", fox_src, "-w", str(fox))
+            importing = host.submit(recon, "sfm", "--from-transforms", fox_src, "-w", str(fox))
         lego_src = lego_subset(args.data / "nerf_synthetic_lego_400", WORK / "lego_data")
         recon("sfm", "--from-transforms", str(lego_src), "-w", str(lego))
         log("lego-400 imported")
-        phase_a = [
-            pool.submit(record, train_and_eval, lego, m, args.budget, 800, 1, dev, "auto", score)
-            for m in methods
-            if m not in TARGET_METHODS
-        ]
-        tests = None  # the gsplat-free CUDA tests go with the first phase's methods, 3dgs's with it
-        if args.tests and dev == "cuda" and any(m not in TARGET_METHODS for m in methods):
-            tests = pool.submit(cuda_tests, "not 3dgs")
-        for job in phase_a:
-            job.result()
-        if tests is not None:
-            result.setdefault("cuda_tests", []).append(tests.result())
-            log(f"tests/e2e/test_cuda.py -k 'not 3dgs': {result['cuda_tests'][0]['summary']}")
-            save()
-        log("phase 2: the target runs")
-        profiles = [m for m in ("ngp", "3dgs") if args.profile and m in methods]
-        profiled = lambda m: solo.submit(profile, lego, m, dev, result, save)
-        phase_b = []
-        if "ngp" in methods:
-            if "ngp" in profiles:
-                phase_b.append(profiled("ngp"))
-            phase_b.append(
-                solo.submit(
-                    record, train_and_eval, lego, "ngp", args.budget, 800, 1, dev, "auto", score
-                )
-            )
-        if compiling is not None:
-            result["gsplat_compile"] = compiling.result()
-            log(f"gsplat compiled: {result['gsplat_compile']}")
-            save()
-        gsplat_ok = compiling is None or result["gsplat_compile"]["ok"]
-        if "3dgs" in methods and not gsplat_ok:
-            result["errors"].append("gsplat did not compile: " + result["gsplat_compile"]["error"])
-            profiles = [m for m in profiles if m != "3dgs"]
-        if fox_import is not None:
-            fox_import.result()
-            log("fox imported")
-        if "3dgs" in methods and gsplat_ok:
-            if "3dgs" in profiles:
-                phase_b.append(profiled("3dgs"))
-            scenes = [(lego, args.budget, 800, 1)]
-            if fox_too:
-                scenes.insert(0, (fox, args.fox_budget, 480, 4))
-            for ws, budget, side, k in scenes:
-                job = (train_and_eval, ws, "3dgs", budget, side, k, dev, "auto", score or ws == fox)
-                phase_b.append(solo.submit(record, *job))
-        for job in phase_b:
-            job.result()
-        if "3dgs" in methods and gsplat_ok:
-            extra = [
-                solo.submit(
-                    record, train_and_eval, fox, "3dgs", args.fox_budget, 480, 4, dev, preset
-                )
-                for preset in args.also_presets.split(",")
-                if preset and fox_too
-            ]
-            if args.tests and dev == "cuda":
-                result.setdefault("cuda_tests", []).append(solo.submit(cuda_tests, "3dgs").result())
-                log(f"tests/e2e/test_cuda.py -k 3dgs: {result['cuda_tests'][-1]['summary']}")
+        trained = []  # (workspace, run record, eval downscale)
+        gsplat_ok = True
+        for ws, method, budget, side, downscale in targets:
+            if method == "3dgs" and compiling is not None and "gsplat_compile" not in result:
+                result["gsplat_compile"] = compiling.result()
+                log(f"gsplat compiled: {result['gsplat_compile']}")
                 save()
-            for job in extra:
-                job.result()
+                if not result["gsplat_compile"]["ok"]:
+                    gsplat_ok = False
+                    result["errors"].append(
+                        "gsplat did not compile: " + result["gsplat_compile"]["error"]
+                    )
+            if method == "3dgs" and not gsplat_ok:
+                continue
+            if ws == fox:
+                importing.result()
+                log("fox imported")
+            if args.profile and ws == lego:  # where a step's time goes, before the run
+                profile(lego, method, dev, result, save)
+            for preset in ["auto"] + (
+                [p for p in args.also_presets.split(",") if p] if ws == fox else []
+            ):
+                done = record(train, ws, method, budget, side, dev, preset)
+                if done is not None:
+                    trained.append((ws, done, downscale))
+        log("phase 2: the other methods, the scoring, the tests")
+        jobs = [pool.submit(record, train, lego, m, args.other_budget, 800, dev) for m in others]
+        tests = pool.submit(cuda_tests) if args.tests and dev == "cuda" else None
+        scoring = [
+            pool.submit(record, score, ws, done, k)
+            for ws, done, k in trained
+            if not (args.heldout_only and ws == lego)
+        ]
+        for job in jobs:
+            if (done := job.result()) is not None:
+                scoring.append(pool.submit(record, score, lego, done, 1))
+        for job in scoring:
+            job.result()
+        for ws, done, _ in trained:  # --heldout-only: the run's own last held-out evaluation
+            done.setdefault("eval", {"psnr": (done["heldout_psnr_end"] or {}).get("psnr"),
+                                     "source": "heldout_end"})  # fmt: skip
+        if tests is not None:
+            result["cuda_tests"] = [tests.result()]
+            log(f"tests/e2e/test_cuda.py: {result['cuda_tests'][0]['summary']}")
     save()
     log(f"{result['total_s']} s in all -> {out}")
     return 1 if result["errors"] else 0

@@ -79,3 +79,8 @@ def test_profile_counts_a_steps_ops_on_a_cpu(tmp_path):
         "aten::mm" in doc["top_ops_cpu_ms_per_step"]
         or "aten::addmm" in doc["top_ops_cpu_ms_per_step"]
     )
+
+
+def test_importable_checks_every_module_in_one_child():
+    assert gpu_check.importable(["json", "recon", "no_such_module_here"]) == {"json", "recon"}
+    assert gpu_check.importable([]) == set()
