@@ -131,6 +131,9 @@ def sh_colors(
     others are skipped: 0.5, the offset alone, and no gradient) -> (G, 3)."""
     coeffs = torch.cat([sh_dc, sh_rest], 1) if degree > 0 else sh_dc
     colors = ops().sh(degree, means - center, coeffs, visible)
+    # gsplat leaves the skipped rows as allocated (uninitialised): zero them, so that no stray
+    # value (a NaN, say) ever reaches a reduction over all splats
+    colors = torch.where(visible[:, None], colors, 0.0)
     return torch.clamp_min(colors + 0.5, 0.0)
 
 
