@@ -260,8 +260,8 @@ def score(ws: Path, done: dict, downscale: int) -> dict:
     """`recon eval` of a trained run (lego: the 25 test views at 400 px; fox: the held-out
     photos at 1/`downscale`): PSNR / SSIM / LPIPS into done["eval"]. Quality does not depend on
     what else shares the GPU, so scoring waits for the second phase."""
-    ev = recon("eval", "-w", str(ws), "--run", done["run"], "--downscale", str(downscale))
     run = done["run"]
+    ev = recon("eval", "-w", str(ws), "--run", run, "--downscale", str(downscale))
     done["eval"] = {**ev[run]["mean"], "size": ev[run]["resolution"], "views": ev[run]["views"]}
     return done
 
@@ -417,9 +417,10 @@ def main() -> int:
         try:
             done = job(*a)
         except Exception as e:  # noqa: BLE001 (a failing run is reported, the others go on)
+            what = f"{job.__name__} {a[0].name} {a[1]['run'] if job is score else a[1]}"
             with lock:
-                result["errors"].append(f"{job.__name__}{a[1:3]}: {e}"[-3000:])
-            log(f"FAILED {job.__name__} {a[1:3]}: {str(e)[-500:]}")
+                result["errors"].append(f"{what}: {e}"[-3000:])
+            log(f"FAILED {what}: {str(e)[-500:]}")
             save()
             return None
         if job is train:
@@ -504,7 +505,8 @@ def main() -> int:
                 scoring.append(pool.submit(record, score, lego, done, 1))
         for job in scoring:
             job.result()
-        for ws, done, _ in trained:  # --heldout-only: the run's own last held-out evaluation
+        for ws, done, _ in trained:  # not scored (--heldout-only, or its eval failed): the
+            # run's own last held-out evaluation, said so
             done.setdefault("eval", {"psnr": (done["heldout_psnr_end"] or {}).get("psnr"),
                                      "source": "heldout_end"})  # fmt: skip
         if tests is not None:
